@@ -1,0 +1,11 @@
+"""so_transients: rapid-transient search in SO LAT time-ordered data.
+
+Importing the package registers its sotodlib extensions: the ``so_transients`` obs loader for
+simulated datasets. List ``so_transients`` under ``imports:`` in a context.yaml so that sotodlib
+(and the site pipeline's spawned workers) import it.
+"""
+from .io.loader import register as _register_loader
+
+__version__ = "0.1.0"
+
+_register_loader()

@@ -1,0 +1,61 @@
+"""Properties of the SO LAT frequency bands used by the simulator and the detection steps.
+
+Beam widths come from sotodlib's nominal hardware model (``sim_hardware.sim_nominal()``, telescope
+``LAT``, keys ``LAT_f090`` ... ``LAT_f290``); white-noise levels and sample rates are those of the
+reference paper (Clancy et al. 2025, sections 2.2 and 5.2). Band names follow SO's ``det_info``
+convention (``f090``, ``f150``, ``f220``, ``f280``); sotodlib's hardware model calls the two UHF
+bands ``LAT_f230`` and ``LAT_f290``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+ARCMIN = np.pi / (180 * 60)
+
+#: det_info bandpass name -> key in sotodlib's nominal hardware model.
+HARDWARE_BAND_KEY = {"f090": "LAT_f090", "f150": "LAT_f150", "f220": "LAT_f230", "f280": "LAT_f290"}
+
+#: Per-sample white noise in point-source-calibrated mJy (paper, section 5.2).
+WHITE_NOISE_MJY = {"f090": 367.0, "f150": 353.0, "f220": 520.0, "f280": 988.0}
+
+#: Wafer flavour -> (bands, sample rate in Hz) (paper, section 2.2).
+FLAVOR_BANDS = {"LAT_MF": ("f090", "f150"), "LAT_UHF": ("f220", "f280")}
+FLAVOR_SAMPLE_RATE = {"LAT_MF": 220.0, "LAT_UHF": 340.0}
+
+
+@dataclass(frozen=True)
+class Band:
+    """One observing band: name, beam FWHM (radians) and white noise per sample (mJy)."""
+
+    name: str
+    fwhm: float
+    white_noise_mjy: float
+
+    @property
+    def sigma(self) -> float:
+        """Gaussian beam sigma in radians: FWHM / (2 sqrt(2 ln 2))."""
+        return self.fwhm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
+
+    @property
+    def sigma_fwhm(self) -> float:
+        """The paper's clustering scale, sigma_FWHM = FWHM / (2 sqrt(ln 2)), in radians."""
+        return self.fwhm / (2.0 * np.sqrt(np.log(2.0)))
+
+
+@lru_cache(maxsize=1)
+def nominal_hardware():
+    """sotodlib's nominal hardware model (cached: building it takes a moment)."""
+    from sotodlib import sim_hardware
+
+    return sim_hardware.sim_nominal()
+
+
+def get_band(name: str) -> Band:
+    """Return the :class:`Band` called ``name`` (``f090``, ``f150``, ``f220`` or ``f280``)."""
+    if name not in HARDWARE_BAND_KEY:
+        raise ValueError(f"unknown band {name!r}; expected one of {sorted(HARDWARE_BAND_KEY)}")
+    fwhm_arcmin = nominal_hardware().data["telescopes"]["LAT"]["fwhm"][HARDWARE_BAND_KEY[name]]
+    return Band(name=name, fwhm=float(fwhm_arcmin) * ARCMIN, white_noise_mjy=WHITE_NOISE_MJY[name])

@@ -1,0 +1,1 @@
+"""Reading and writing simulated TOD, and the sotodlib obs loader for them."""

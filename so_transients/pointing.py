@@ -1,0 +1,103 @@
+"""Exact pointing for the samples that need it, with so3g quaternions.
+
+Per-sample RA/Dec of every detector of an hour-long wafer is tens of GB. The simulator and the
+detection steps need pointing only at a few places, so this module offers the three cheap
+operations they use:
+
+* :func:`boresight_quats` -- the boresight's celestial quaternion per sample (one per sample,
+  computed by ``so3g.proj.CelestialSightLine``: precession, nutation, aberration and refraction);
+* :func:`radec_of_samples` -- RA/Dec of chosen (detector, sample) pairs only;
+* :func:`source_in_focal_plane` -- where a sky position falls in focal-plane coordinates
+  (xi, eta) at chosen samples, from which the distance of every detector to it follows exactly
+  (:func:`angular_distance_xieta`).
+
+All angles are radians; times are ctime (seconds since 1970).
+"""
+from __future__ import annotations
+
+import numpy as np
+from so3g.proj import CelestialSightLine, quat
+
+#: Site name understood by so3g for the SO LAT.
+SITE = "so"
+
+
+def boresight_sightline(timestamps, az, el, roll=None, weather="typical") -> CelestialSightLine:
+    """so3g sight line of the boresight (celestial), from ctime and az/el/roll in radians."""
+    timestamps = np.asarray(timestamps, dtype=np.float64)
+    az = np.asarray(az, dtype=np.float64)
+    el = np.asarray(el, dtype=np.float64)
+    roll = None if roll is None else np.asarray(roll, dtype=np.float64)
+    if not (timestamps.shape == az.shape == el.shape):
+        raise ValueError("timestamps, az and el must have the same shape")
+    return CelestialSightLine.az_el(timestamps, az, el, roll=roll, site=SITE, weather=weather)
+
+
+def boresight_quats(timestamps, az, el, roll=None, weather="typical") -> np.ndarray:
+    """Celestial quaternions of the boresight, shape (nsamps, 4), from ctime and az/el/roll."""
+    return np.asarray(boresight_sightline(timestamps, az, el, roll, weather).Q)
+
+
+def detector_quats(xi, eta, gamma=None):
+    """so3g quaternions (G3VectorQuat) for focal-plane offsets xi, eta, gamma (radians)."""
+    xi = np.atleast_1d(np.asarray(xi, dtype=np.float64))
+    eta = np.atleast_1d(np.asarray(eta, dtype=np.float64))
+    gamma = np.zeros_like(xi) if gamma is None else np.atleast_1d(np.asarray(gamma, np.float64))
+    return quat.rotation_xieta(xi, eta, gamma)
+
+
+def radec_of_samples(bore_q, xi, eta, det_index, samp_index):
+    """RA, Dec (radians, RA in [0, 2pi)) of detector ``det_index[k]`` at sample ``samp_index[k]``.
+
+    ``bore_q`` is the (nsamps, 4) array from :func:`boresight_quats`; ``xi``, ``eta`` are the
+    focal-plane offsets of all detectors. Only the requested pairs are computed.
+    """
+    det_index = np.asarray(det_index, dtype=np.intp)
+    samp_index = np.asarray(samp_index, dtype=np.intp)
+    if det_index.shape != samp_index.shape:
+        raise ValueError("det_index and samp_index must have the same shape")
+    if det_index.size == 0:
+        return np.zeros(0), np.zeros(0)
+    q_bore = quat.G3VectorQuat(np.ascontiguousarray(bore_q[samp_index]))
+    q_det = detector_quats(np.asarray(xi)[det_index], np.asarray(eta)[det_index])
+    lon, lat, _ = quat.decompose_lonlat(q_bore * q_det)
+    return np.mod(lon, 2 * np.pi), lat
+
+
+def source_in_focal_plane(bore_q, ra, dec):
+    """Focal-plane position (xi, eta) of a fixed sky position at every sample of ``bore_q``."""
+    q_src = quat.rotation_lonlat(float(ra), float(dec))
+    rel = ~quat.G3VectorQuat(np.ascontiguousarray(bore_q)) * q_src
+    xi, eta, _ = quat.decompose_xieta(rel)
+    return np.asarray(xi), np.asarray(eta)
+
+
+def _unit_vectors(xi, eta):
+    xi = np.asarray(xi, dtype=np.float64)
+    eta = np.asarray(eta, dtype=np.float64)
+    z = np.sqrt(np.clip(1.0 - xi**2 - eta**2, 0.0, None))
+    return xi, eta, z
+
+
+def angular_distance_xieta(xi1, eta1, xi2, eta2):
+    """Exact angle (radians) between focal-plane directions (xi1, eta1) and (xi2, eta2).
+
+    so3g's xi and eta are the transverse components of the unit vector in the boresight frame,
+    so the chord between the two unit vectors gives the great-circle distance. Broadcasts.
+    """
+    x1, y1, z1 = _unit_vectors(xi1, eta1)
+    x2, y2, z2 = _unit_vectors(xi2, eta2)
+    chord = np.sqrt((x1 - x2) ** 2 + (y1 - y2) ** 2 + (z1 - z2) ** 2)
+    return 2.0 * np.arcsin(np.clip(chord / 2.0, 0.0, 1.0))
+
+
+def horizon_offsets(xi, eta, el):
+    """Exact azimuth and elevation of detectors when the boresight is at az=0, elevation ``el``.
+
+    For a constant-elevation scan with zero roll, a detector's azimuth is the boresight's plus the
+    returned offset and its elevation is constant, so this gives every detector's horizon pointing
+    at every sample without a per-sample computation. so3g's horizon frame uses lon = -az.
+    """
+    q_bore = quat.rotation_lonlat(0.0, float(el))
+    lon, lat, _ = quat.decompose_lonlat(q_bore * detector_quats(xi, eta))
+    return -np.asarray(lon), np.asarray(lat)

@@ -1,0 +1,185 @@
+"""Simulation configuration: a YAML file read into validated dataclasses.
+
+Every section and key is optional; defaults give one MF wafer (w16 in tube i1), both MF bands,
+15 minutes at elevation 50 deg, white noise + atmosphere + CMB and a handful of flares. Unknown
+keys are errors, so a typo never silently falls back to a default. See ``configs/sim_default.yaml``
+for the documented full set.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from ..bands import HARDWARE_BAND_KEY, WHITE_NOISE_MJY
+from .scan import ScanPattern
+
+DEFAULT_FKNEE_HZ = 1.23
+
+
+def _check_range(name, value, positive=True):
+    if isinstance(value, (int, float)):
+        value = [value, value]
+    if len(value) != 2 or value[0] > value[1] or (positive and value[0] <= 0):
+        raise ValueError(f"{name} must be a number or a [low, high] range of positive numbers, "
+                         f"got {value}")
+    return [float(v) for v in value]
+
+
+@dataclass
+class ObservationConfig:
+    start: float = 1_700_000_000.0   # ctime of the first observation
+    duration: float = 900.0          # seconds per observation
+    n_obs: int = 1                   # consecutive observations per tube
+    gap: float = 60.0                # seconds between consecutive observations
+
+    def __post_init__(self):
+        if self.duration <= 0 or self.n_obs < 1 or self.gap < 0:
+            raise ValueError("observation: duration must be > 0, n_obs >= 1 and gap >= 0")
+
+
+@dataclass
+class InstrumentConfig:
+    tubes: list = field(default_factory=lambda: ["i1"])
+    wafers: list | None = field(default_factory=lambda: ["w16"])  # None: all wafers of the tubes
+    bands: list | None = None                                      # None: both bands of each tube
+
+    def __post_init__(self):
+        if not self.tubes:
+            raise ValueError("instrument.tubes must name at least one LAT tube slot")
+        for band in self.bands or []:
+            if band not in HARDWARE_BAND_KEY:
+                raise ValueError(f"instrument.bands: unknown band {band!r}")
+
+
+@dataclass
+class NoiseConfig:
+    enabled: bool = True
+    white_mjy: dict = field(default_factory=lambda: dict(WHITE_NOISE_MJY))
+
+
+@dataclass
+class AtmosphereConfig:
+    enabled: bool = True
+    altitude: float = 1500.0        # m, height of the frozen turbulent layer
+    outer_scale: float = 500.0      # m, Kolmogorov outer scale
+    wind_speed: float = 8.0         # m/s
+    wind_direction: float = 30.0    # deg, direction the layer moves to, from +x (east) to +y
+    aperture: float = 6.0           # m, diameter of the near-field beam (the LAT primary)
+    pixel: float = 2.0              # m, screen resolution
+    fknee: dict = field(default_factory=lambda: {b: DEFAULT_FKNEE_HZ for b in WHITE_NOISE_MJY})
+
+
+@dataclass
+class CmbConfig:
+    enabled: bool = True
+    resolution_arcmin: float = 1.0
+
+
+@dataclass
+class FlareConfig:
+    n: int = 0
+    s_peak_mjy: Any = (300.0, 3000.0)   # a value or a [low, high] log-uniform range
+    t_rise: Any = (0.5, 30.0)           # seconds, value or log-uniform range
+    t_decay: Any = None                 # None: equal to t_rise
+    eta_rise: float = 1.0
+    eta_decay: float = 1.0
+    list: list = field(default_factory=list)  # explicit flares, see configs/sim_default.yaml
+
+    def __post_init__(self):
+        self.s_peak_mjy = _check_range("flares.s_peak_mjy", self.s_peak_mjy)
+        self.t_rise = _check_range("flares.t_rise", self.t_rise)
+        if self.t_decay is not None:
+            self.t_decay = _check_range("flares.t_decay", self.t_decay)
+        if self.n < 0:
+            raise ValueError("flares.n must be >= 0")
+
+
+@dataclass
+class PointSourceConfig:
+    n: int = 0
+    flux_mjy: Any = (500.0, 5000.0)
+    list: list = field(default_factory=list)
+
+    def __post_init__(self):
+        self.flux_mjy = _check_range("point_sources.flux_mjy", self.flux_mjy)
+
+
+@dataclass
+class GlitchConfig:
+    enabled: bool = False
+    rate_per_hour: float = 30.0          # events per wafer per hour
+    n_dets: Any = (5, 60)                # detectors hit per event (both bands of the wafer)
+    amplitude_mjy: Any = (3000.0, 30000.0)
+    time_constant: float = 0.004         # s, exponential decay of each spike
+
+    def __post_init__(self):
+        self.n_dets = [int(v) for v in _check_range("glitches.n_dets", self.n_dets)]
+        self.amplitude_mjy = _check_range("glitches.amplitude_mjy", self.amplitude_mjy)
+
+
+SECTIONS = {
+    "observation": ObservationConfig, "instrument": InstrumentConfig, "scan": ScanPattern,
+    "noise": NoiseConfig, "atmosphere": AtmosphereConfig, "cmb": CmbConfig,
+    "flares": FlareConfig, "point_sources": PointSourceConfig, "glitches": GlitchConfig,
+}
+
+
+@dataclass
+class SimConfig:
+    seed: int = 0
+    output: str = "data/sim"
+    observation: ObservationConfig = field(default_factory=ObservationConfig)
+    instrument: InstrumentConfig = field(default_factory=InstrumentConfig)
+    scan: ScanPattern = field(default_factory=ScanPattern)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    atmosphere: AtmosphereConfig = field(default_factory=AtmosphereConfig)
+    cmb: CmbConfig = field(default_factory=CmbConfig)
+    flares: FlareConfig = field(default_factory=FlareConfig)
+    point_sources: PointSourceConfig = field(default_factory=PointSourceConfig)
+    glitches: GlitchConfig = field(default_factory=GlitchConfig)
+
+    @classmethod
+    def from_dict(cls, data: dict | None) -> "SimConfig":
+        data = dict(data or {})
+        unknown = set(data) - {f.name for f in dataclasses.fields(cls)}
+        if unknown:
+            raise ValueError(f"unknown simulation config keys: {sorted(unknown)}")
+        kwargs = {}
+        for key, value in data.items():
+            if key in SECTIONS:
+                kwargs[key] = _section(key, SECTIONS[key], value)
+            else:
+                kwargs[key] = value
+        return cls(**kwargs)
+
+    @classmethod
+    def from_yaml(cls, path) -> "SimConfig":
+        with open(path) as f:
+            return cls.from_dict(yaml.safe_load(f))
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def _section(name, klass, value):
+    value = dict(value or {})
+    known = {f.name for f in dataclasses.fields(klass)}
+    unknown = set(value) - known
+    if unknown:
+        raise ValueError(f"unknown keys in simulation config section {name!r}: {sorted(unknown)}; "
+                         f"known: {sorted(known)}")
+    return klass(**value)
+
+
+def load_config(path=None, overrides: dict | None = None) -> SimConfig:
+    """Read a simulation config (``None``: all defaults) and apply top-level ``overrides``."""
+    data = {}
+    if path is not None:
+        with open(Path(path)) as f:
+            data = yaml.safe_load(f) or {}
+    data.update({k: v for k, v in (overrides or {}).items() if v is not None})
+    return SimConfig.from_dict(data)

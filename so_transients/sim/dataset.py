@@ -1,0 +1,114 @@
+"""Writing a simulated dataset that ``sotodlib.core.Context`` opens like real SO data.
+
+A dataset folder holds::
+
+    context.yaml                  imports so_transients; obs_loader_type: so_transients
+    obsdb.sqlite                  ObsDb: one row per observation (one per tube and time block)
+    obsfiledb.sqlite              ObsFileDb: detsets (one per wafer and band) and TOD files
+    tod/<obs_id>/<obs_id>_<detset>.h5
+    metadata/det_info.{h5,sqlite} det_info fields (wafer_slot, tube_slot, bandpass, det_id, pol,
+                                  pixel) through a ManifestDb, merged into det_info
+    metadata/focal_plane.{h5,sqlite}  xi, eta, gamma (radians) through a ManifestDb
+    truth/flares.ecsv, truth/point_sources.ecsv, truth/glitches.ecsv
+    sim_config.yaml               the configuration (with its seed) that produced it
+
+Paths inside the databases are relative, so the folder can be moved.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import yaml
+from sotodlib.core import metadata
+from sotodlib.io.metadata import write_dataset
+
+from ..io.loader import LOADER_NAME
+
+DET_INFO_FIELDS = ("det_id", "tube_slot", "wafer_slot", "bandpass", "pol", "pixel")
+OBS_COLUMNS = ["timestamp float", "duration float", "start_time float", "stop_time float",
+               "n_samples int", "sample_rate float", "telescope str", "tube_slot str",
+               "tube_flavor str", "wafer_slots_list str", "type str", "subtype str",
+               "el_nom float", "az_center float", "az_throw float", "scan_speed float"]
+
+
+def obs_id_for(start: float, tube_slot: str) -> str:
+    """SO-style observation id of one tube: ``obs_<ctime>_lat<tube>_111``."""
+    return f"obs_{int(start)}_lat{tube_slot}_111"
+
+
+class DatasetWriter:
+    """Accumulates observations, detsets and metadata, then writes the databases and context."""
+
+    def __init__(self, root):
+        self.root = Path(root)
+        for sub in ("tod", "metadata", "truth"):
+            (self.root / sub).mkdir(parents=True, exist_ok=True)
+        self.obsdb = metadata.ObsDb()
+        self.obsdb.add_obs_columns(OBS_COLUMNS)
+        self.obsfiledb = metadata.ObsFileDb()
+        self._detsets = set()
+        scheme = metadata.ManifestScheme().add_exact_match("obs:obs_id").add_data_field("dataset")
+        self.det_info_db = metadata.ManifestDb(scheme=scheme)
+        scheme = metadata.ManifestScheme().add_exact_match("obs:obs_id").add_data_field("dataset")
+        self.focal_plane_db = metadata.ManifestDb(scheme=scheme)
+        self._metadata_written = set()
+
+    def tod_path(self, obs_id, detset) -> Path:
+        folder = self.root / "tod" / obs_id
+        folder.mkdir(parents=True, exist_ok=True)
+        return folder / f"{obs_id}_{detset}.h5"
+
+    def add_observation(self, obs_id, info: dict):
+        self.obsdb.update_obs(obs_id, info)
+
+    def add_detset_file(self, obs_id, detset, readout_ids, path, n_samples):
+        if detset not in self._detsets:
+            self.obsfiledb.add_detset(detset, list(readout_ids))
+            self._detsets.add(detset)
+        rel = os.path.relpath(path, self.root)
+        self.obsfiledb.add_obsfile(rel, obs_id, detset, 0, int(n_samples))
+
+    def add_detector_metadata(self, obs_id, tube_slot, dets: dict):
+        """det_info and focal_plane entries of ``obs_id`` (the detectors of its tube)."""
+        address = f"tube_{tube_slot}"
+        if address not in self._metadata_written:
+            info = metadata.ResultSet(["dets:readout_id"] + [f"dets:{k}" for k in DET_INFO_FIELDS])
+            info.rows = [tuple(row) for row in zip(dets["readout_id"],
+                                                   *[dets[k] for k in DET_INFO_FIELDS])]
+            write_dataset(info, str(self.root / "metadata/det_info.h5"), address, overwrite=True)
+            fp = metadata.ResultSet(["dets:readout_id", "xi", "eta", "gamma"])
+            fp.rows = [tuple(row) for row in zip(dets["readout_id"], dets["xi"], dets["eta"],
+                                                 dets["gamma"])]
+            write_dataset(fp, str(self.root / "metadata/focal_plane.h5"), address, overwrite=True)
+            self._metadata_written.add(address)
+        self.det_info_db.add_entry({"obs:obs_id": obs_id, "dataset": address},
+                                   filename="det_info.h5")
+        self.focal_plane_db.add_entry({"obs:obs_id": obs_id, "dataset": address},
+                                      filename="focal_plane.h5")
+
+    def finish(self, config_dict: dict) -> Path:
+        """Write databases, context.yaml and the config; returns the context.yaml path."""
+        self.obsdb.to_file(str(self.root / "obsdb.sqlite"))
+        self.obsfiledb.to_file(str(self.root / "obsfiledb.sqlite"))
+        self.det_info_db.to_file(str(self.root / "metadata/det_info.sqlite"))
+        self.focal_plane_db.to_file(str(self.root / "metadata/focal_plane.sqlite"))
+        context = {
+            "imports": ["so_transients"],
+            "tags": {"dataset": str(self.root.resolve())},
+            "obsdb": "{dataset}/obsdb.sqlite",
+            "obsfiledb": "{dataset}/obsfiledb.sqlite",
+            "obs_loader_type": LOADER_NAME,
+            "metadata": [
+                {"db": "{dataset}/metadata/det_info.sqlite", "det_info": True,
+                 "loader": "ResultSetHdf"},
+                {"db": "{dataset}/metadata/focal_plane.sqlite", "label": "focal_plane",
+                 "unpack": "focal_plane", "loader": "ResultSetHdf"},
+            ],
+        }
+        path = self.root / "context.yaml"
+        with open(path, "w") as f:
+            yaml.safe_dump(context, f, sort_keys=False)
+        with open(self.root / "sim_config.yaml", "w") as f:
+            yaml.safe_dump(config_dict, f, sort_keys=False)
+        return path

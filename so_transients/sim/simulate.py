@@ -1,0 +1,278 @@
+"""Simulate SO LAT observations into a sotodlib dataset, one wafer-band group at a time.
+
+For every time block (``observation.n_obs`` of them) and every simulated tube, one observation
+is written. Within it each detset (wafer x band) is generated in chunks of detectors: white
+noise, the shared atmosphere screen, the CMB, flares, steady sources and glitches are added to a
+chunk and written to disk before the next chunk starts, so memory stays far below the size of
+one wafer-band's TOD.
+
+Reproducibility: every random draw comes from a generator seeded by ``(seed, component, ...)``
+with stable integer keys (block index, CRC32 of detector or wafer names), so the same seed gives
+bit-identical files whatever the chunking or the order of generation.
+"""
+from __future__ import annotations
+
+import shutil
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from astropy.table import Table, vstack
+from tqdm.auto import tqdm
+
+from ..bands import FLAVOR_BANDS, FLAVOR_SAMPLE_RATE, get_band
+from ..io.tod_file import TodWriter
+from ..pointing import boresight_sightline, horizon_offsets, radec_of_samples
+from . import atmosphere, focal_plane
+from .cmb import CmbSky, footprint_geometry
+from .config import SimConfig
+from .dataset import DatasetWriter, obs_id_for
+from .glitches import add_glitches, draw_glitches
+from .scan import boresight, constant_velocity_mask
+from .sources import (FLARE_COLUMNS, POINT_SOURCE_COLUMNS, PointingContext, add_sources,
+                      draw_flares, draw_point_sources, empty_table, source_crossings)
+
+DETS_PER_CHUNK = 32
+# component keys of the random streams
+WHITE, ATMOSPHERE, CMB, FLARES, POINT_SOURCES, GLITCHES = range(1, 7)
+
+
+def rng_for(seed: int, *keys) -> np.random.Generator:
+    """Generator for one random stream; string keys are hashed with CRC32 (stable)."""
+    ints = [zlib.crc32(k.encode()) if isinstance(k, str) else int(k) for k in keys]
+    return np.random.default_rng([int(seed), *ints])
+
+
+@dataclass
+class SimulationResult:
+    """What :func:`simulate` produced."""
+
+    context: Path
+    obs_ids: list
+    flares: Table
+    point_sources: Table
+    glitches: Table
+    detsets: dict = field(default_factory=dict)   # obs_id -> [detset, ...]
+
+
+@dataclass
+class Timeline:
+    """Timestamps and boresight of one tube flavour during one time block."""
+
+    timestamps: np.ndarray
+    t_rel: np.ndarray
+    az: np.ndarray
+    el: np.ndarray
+    sight: object            # so3g CelestialSightLine of the boresight
+    sample_rate: float
+
+    @property
+    def bore_q(self) -> np.ndarray:
+        return np.asarray(self.sight.Q)
+
+
+def _timeline(start, duration, sample_rate, pattern) -> Timeline:
+    n = int(round(duration * sample_rate))
+    t_rel = np.arange(n) / sample_rate
+    az, el, _ = boresight(t_rel, pattern)
+    t = start + t_rel
+    return Timeline(t, t_rel, az, el, boresight_sightline(t, az, el, np.zeros(n)), sample_rate)
+
+
+def _selected_dets(config: SimConfig, tube):
+    dets = focal_plane.tube_detectors(tube)
+    keep = np.ones(len(dets["xi"]), bool)
+    if config.instrument.wafers is not None:
+        keep &= np.isin(dets["wafer_slot"], config.instrument.wafers)
+    if config.instrument.bands is not None:
+        keep &= np.isin(dets["bandpass"], config.instrument.bands)
+    return {k: v[keep] for k, v in dets.items()}
+
+
+def _validate_instrument(config: SimConfig):
+    for tube in config.instrument.tubes:
+        focal_plane.tube_flavor(tube)   # raises on unknown tubes
+    dets = {t: _selected_dets(config, t) for t in config.instrument.tubes}
+    empty = [t for t, d in dets.items() if len(d["xi"]) == 0]
+    if empty:
+        raise ValueError(f"no detectors selected in tubes {empty}: check instrument.wafers "
+                         f"and instrument.bands")
+    return dets
+
+
+class _BlockSky:
+    """Sky and atmosphere shared by every tube during one time block."""
+
+    def __init__(self, config: SimConfig, block: int, ref: Timeline, all_dets):
+        self.config = config
+        self.atm = None
+        self._unit_psd = {}
+        if config.atmosphere.enabled:
+            el_offsets = np.concatenate([d["eta"] for d in all_dets.values()])
+            pad = np.abs(el_offsets).max() + 0.01
+            bounds = atmosphere.screen_bounds(config.atmosphere, ref.t_rel, ref.az,
+                                              ref.el[0] - pad, ref.el[0] + pad)
+            self.atm = atmosphere.AtmosphereScreen(config.atmosphere, bounds,
+                                                   rng_for(config.seed, ATMOSPHERE, block))
+        self.cmb = None
+        if config.cmb.enabled:
+            step = max(1, len(ref.timestamps) // 20000)
+            ra, dec = radec_of_samples(ref.bore_q, [0.0], [0.0],
+                                       np.zeros(len(ref.timestamps[::step]), int),
+                                       np.arange(0, len(ref.timestamps), step))
+            shape, wcs = footprint_geometry(ra, dec, np.radians(3.0),
+                                            np.radians(config.cmb.resolution_arcmin / 60))
+            self.cmb = CmbSky(shape, wcs, rng_for(config.seed, CMB, block))
+
+    def atmosphere_scale(self, band, white_mjy, tl: Timeline):
+        fknee = self.config.atmosphere.fknee[band.name]
+        key = (fknee, tl.sample_rate)
+        if key not in self._unit_psd:
+            self._unit_psd[key] = atmosphere.unit_psd_at(self.atm, tl.t_rel, tl.az, tl.el[0],
+                                                         tl.sample_rate, fknee)
+        return atmosphere.band_amplitude(self._unit_psd[key], white_mjy, tl.sample_rate)
+
+
+def _draw_sources(config: SimConfig, blocks, all_dets):
+    """Flares and point sources of the whole dataset, drawn block by block."""
+    bands = sorted({b for d in all_dets.values() for b in d["bandpass"]})
+    det_cat = {k: np.concatenate([d[k] for d in all_dets.values()])
+               for k in ("xi", "eta", "det_id")}
+    pitch = 5.3 * 0.00495 * np.pi / 180
+    flare_rng = rng_for(config.seed, FLARES)
+    n_per_block = np.bincount(flare_rng.integers(len(blocks), size=config.flares.n),
+                              minlength=len(blocks))
+    ps_rng = rng_for(config.seed, POINT_SOURCES)
+    flares, sources = [], []
+    first_start = blocks[0][1].timestamps[0]
+    for b, (_, ref) in enumerate(blocks):
+        ctx = PointingContext(ref.timestamps, ref.bore_q, constant_velocity_mask(ref.t_rel,
+                              config.scan), det_cat["xi"], det_cat["eta"], det_cat["det_id"], pitch)
+        offset = ref.timestamps[0] - first_start
+        listed = [dict(e, t_peak=e["t_peak"] - offset,
+                       **({"at_time": e["at_time"] - offset} if "at_time" in e else {}))
+                  for e in config.flares.list
+                  if 0 <= e["t_peak"] - offset <= ref.t_rel[-1]]
+        block_cfg = type(config.flares)(**{**config.flares.__dict__, "n": int(n_per_block[b]),
+                                           "list": listed})
+        flares.append(draw_flares(block_cfg, bands, ctx, flare_rng))
+        if b == 0:
+            sources.append(draw_point_sources(config.point_sources, bands, ctx, ps_rng))
+    flares = vstack(flares) if flares else empty_table(FLARE_COLUMNS)
+    if len(flares):   # renumber across blocks: one id per physical flare
+        _, flares["source_id"] = np.unique(np.stack([flares["t_peak"], flares["ra"]]), axis=1,
+                                           return_inverse=True)
+    return flares, (vstack(sources) if sources else empty_table(POINT_SOURCE_COLUMNS))
+
+
+def simulate(config: SimConfig, output=None, overwrite=False, progress=True) -> SimulationResult:
+    """Run the simulation described by ``config`` and write the dataset to ``output``."""
+    root = Path(output or config.output)
+    if (root / "context.yaml").exists():
+        if not overwrite:
+            raise FileExistsError(f"{root} already holds a dataset; pass overwrite=True "
+                                  "(--overwrite) to replace it")
+        shutil.rmtree(root)
+    all_dets = _validate_instrument(config)
+    flavors = {t: focal_plane.tube_flavor(t) for t in config.instrument.tubes}
+    obs_cfg = config.observation
+    starts = [obs_cfg.start + k * (obs_cfg.duration + obs_cfg.gap) for k in range(obs_cfg.n_obs)]
+    ref_flavor = flavors[config.instrument.tubes[0]]
+    blocks = [(s, _timeline(s, obs_cfg.duration, FLAVOR_SAMPLE_RATE[ref_flavor], config.scan))
+              for s in starts]
+    flares, point_sources = _draw_sources(config, blocks, all_dets)
+
+    writer = DatasetWriter(root)
+    result = SimulationResult(root / "context.yaml", [], flares, point_sources, Table())
+    glitch_tables = []
+    for b, (start, ref) in enumerate(blocks):
+        sky = _BlockSky(config, b, ref, all_dets)
+        for tube in config.instrument.tubes:
+            tl = ref if flavors[tube] == ref_flavor else _timeline(
+                start, obs_cfg.duration, FLAVOR_SAMPLE_RATE[flavors[tube]], config.scan)
+            obs_id = obs_id_for(start, tube)
+            glitch_tables += _simulate_obs(config, writer, sky, tl, tube, obs_id, b,
+                                           all_dets[tube], flares, point_sources, progress)
+            result.obs_ids.append(obs_id)
+    result.glitches = vstack(glitch_tables) if glitch_tables else Table()
+    _write_truth(root, flares, point_sources, result.glitches)
+    writer.finish(config.to_dict())
+    result.detsets = {o: sorted({f"{w}_{bd}" for w, bd in zip(all_dets[t]["wafer_slot"],
+                                                              all_dets[t]["bandpass"])})
+                      for o, t in zip(result.obs_ids, config.instrument.tubes * len(blocks))}
+    return result
+
+
+def _write_truth(root, flares, point_sources, glitches):
+    flares.write(root / "truth/flares.ecsv", overwrite=True)
+    point_sources.write(root / "truth/point_sources.ecsv", overwrite=True)
+    if len(glitches.colnames):
+        glitches.write(root / "truth/glitches.ecsv", overwrite=True)
+
+
+def _simulate_obs(config, writer, sky, tl: Timeline, tube, obs_id, block, dets, flares,
+                  point_sources, progress):
+    """Write one observation (all detsets of one tube); returns its glitch truth tables."""
+    writer.add_detector_metadata(obs_id, tube, dets)
+    pattern = config.scan
+    writer.add_observation(obs_id, {
+        "timestamp": tl.timestamps[0], "duration": tl.timestamps[-1] - tl.timestamps[0],
+        "start_time": tl.timestamps[0], "stop_time": tl.timestamps[-1],
+        "n_samples": len(tl.timestamps), "sample_rate": tl.sample_rate, "telescope": "lat",
+        "tube_slot": tube, "tube_flavor": focal_plane.tube_flavor(tube)[4:].lower(),
+        "wafer_slots_list": ",".join(sorted(set(dets["wafer_slot"]))), "type": "obs",
+        "subtype": "cmb", "el_nom": pattern.el, "az_center": pattern.az_center,
+        "az_throw": pattern.az_throw, "scan_speed": pattern.sky_speed})
+    daz, el_det = horizon_offsets(dets["xi"], dets["eta"], tl.el[0])
+    glitch_tables = []
+    for wafer in sorted(set(dets["wafer_slot"])):
+        in_wafer = dets["wafer_slot"] == wafer
+        glitches = draw_glitches(config.glitches, obs_id, wafer, tl.timestamps,
+                                 dets["readout_id"][in_wafer],
+                                 rng_for(config.seed, GLITCHES, block, wafer))
+        glitch_tables.append(glitches)
+        for band_name in sorted(set(dets["bandpass"][in_wafer])):
+            sel = np.flatnonzero(in_wafer & (dets["bandpass"] == band_name))
+            _simulate_detset(config, writer, sky, tl, obs_id, f"{wafer}_{band_name}",
+                             {k: v[sel] for k, v in dets.items()}, daz[sel], el_det[sel],
+                             flares[flares["band"] == band_name],
+                             point_sources[point_sources["band"] == band_name],
+                             glitches, progress)
+    return glitch_tables
+
+
+def _simulate_detset(config, writer, sky, tl: Timeline, obs_id, detset, dets, daz, el_det,
+                     flares, point_sources, glitches, progress):
+    band = get_band(dets["bandpass"][0])
+    white = float(config.noise.white_mjy[band.name])
+    center = (dets["xi"].mean(), dets["eta"].mean())
+    radius = np.hypot(dets["xi"] - center[0], dets["eta"] - center[1]).max()
+    bore_q = tl.bore_q
+    crossings = source_crossings(tl.timestamps, bore_q, flares, center, radius, band.sigma)
+    crossings += source_crossings(tl.timestamps, bore_q, point_sources, center, radius,
+                                  band.sigma, steady=True)
+    atm_scale = sky.atmosphere_scale(band, white, tl) if sky.atm is not None else 0.0
+    ndet, nsamp = len(dets["xi"]), len(tl.timestamps)
+    path = writer.tod_path(obs_id, detset)
+    chunks = range(0, ndet, DETS_PER_CHUNK)
+    with TodWriter(path, obs_id, detset, dets["readout_id"], tl.timestamps, tl.az, tl.el,
+                   np.zeros(nsamp)) as out:
+        for start in tqdm(chunks, desc=f"{obs_id} {detset}", unit="chunk", disable=not progress,
+                          leave=False):
+            sl = slice(start, min(start + DETS_PER_CHUNK, ndet))
+            tod = np.zeros((sl.stop - sl.start, nsamp), dtype=np.float32)
+            if config.noise.enabled:
+                for i, name in enumerate(dets["readout_id"][sl]):
+                    rng = rng_for(config.seed, WHITE, obs_id, name)
+                    tod[i] = rng.standard_normal(nsamp, dtype=np.float32) * np.float32(white)
+            if sky.atm is not None:
+                tod += np.float32(atm_scale) * sky.atm.sample(tl.t_rel, tl.az, daz[sl], el_det[sl])
+            if sky.cmb is not None:
+                tod += sky.cmb.sample(band, tl.sight, dets["xi"][sl], dets["eta"][sl],
+                                      dets["gamma"][sl])
+            add_sources(tod, dets["xi"][sl], dets["eta"][sl], crossings, band.sigma)
+            add_glitches(tod, dets["readout_id"][sl], tl.timestamps, glitches,
+                         config.glitches.time_constant)
+            out.write_rows(sl.start, tod)
+    writer.add_detset_file(obs_id, detset, dets["readout_id"], path, nsamp)

@@ -1,0 +1,37 @@
+"""Shared fixtures: small simulated datasets written once per test session."""
+import os
+
+import pytest
+
+os.environ.setdefault("OMP_WAIT_POLICY", "passive")
+
+from so_transients.sim.config import SimConfig  # noqa: E402
+from so_transients.sim.simulate import simulate  # noqa: E402
+
+
+def run_sim(path, **sections):
+    """Simulate a dataset into ``path`` from config sections given as dicts."""
+    config = SimConfig.from_dict({"output": str(path), **sections})
+    return simulate(config, progress=False)
+
+
+@pytest.fixture(scope="session")
+def noisy_dataset(tmp_path_factory):
+    """Five minutes of one MF wafer (both bands) with every noise component on."""
+    return run_sim(tmp_path_factory.mktemp("noisy"), seed=11,
+                   observation={"duration": 300.0},
+                   flares={"n": 2, "s_peak_mjy": [500, 1000]})
+
+
+@pytest.fixture(scope="session")
+def bright_source_dataset(tmp_path_factory):
+    """One MF wafer at f090 with white noise only, a 50 Jy steady source and a bright flare,
+    each placed exactly on the path of a chosen detector."""
+    return run_sim(tmp_path_factory.mktemp("bright"), seed=2,
+                   observation={"duration": 100.0},
+                   instrument={"tubes": ["i1"], "wafers": ["w16"], "bands": ["f090"]},
+                   atmosphere={"enabled": False}, cmb={"enabled": False},
+                   point_sources={"list": [{"at_detector": "w16_f090_p200A", "at_time": 30.0,
+                                            "flux_mjy": 50000.0}]},
+                   flares={"list": [{"at_detector": "w16_f090_p100A", "at_time": 60.0,
+                                     "t_peak": 60.0, "s_peak_mjy": 20000.0, "t_rise": 2.0}]})

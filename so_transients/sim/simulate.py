@@ -163,6 +163,7 @@ def _draw_sources(config: SimConfig, blocks, all_dets):
     if len(flares):   # renumber across blocks: one id per physical flare
         _, flares["source_id"] = np.unique(np.stack([flares["t_peak"], flares["ra"]]), axis=1,
                                            return_inverse=True)
+        flares.sort(["source_id", "band"])
     return flares, (vstack(sources) if sources else empty_table(POINT_SOURCE_COLUMNS))
 
 

@@ -1,9 +1,11 @@
 """so_transients: rapid-transient search in SO LAT time-ordered data.
 
-Importing the package registers its sotodlib extensions: the ``so_transients`` obs loader for
-simulated datasets. List ``so_transients`` under ``imports:`` in a context.yaml so that sotodlib
+Importing the package registers its sotodlib extensions: the preprocess steps
+``transient_filter``, ``transient_find``, ``transient_cuts`` and ``transient_fit``, and the
+``so_transients`` obs loader for simulated datasets. List ``so_transients`` under ``imports:`` in a context.yaml so that sotodlib
 (and the site pipeline's spawned workers) import it.
 """
+from . import processes  # noqa: F401  registers the transient_* preprocess steps
 from .io.loader import register as _register_loader
 
 __version__ = "0.1.0"

@@ -6,7 +6,8 @@ would have a different length in each group and break that concatenation (or, wi
 ``other_fields='first'``, silently keep only the first group). So catalogues are stored in
 *slots* attached to detectors: every field is a ``(dets, transient_slot)`` array, and candidate
 ``k`` occupies one (detector, slot) cell -- the cell of the detector where it peaked when free.
-``valid`` marks occupied cells and ``cand_id`` numbers candidates within their group. Any
+``occupied`` marks used cells (sotodlib adds its own ``valid`` ranges to saved fields) and
+``cand_id`` numbers candidates within their group. Any
 concatenation of groups along ``dets`` then still holds every candidate of every group, and
 :func:`unpack` turns it back into rows.
 """
@@ -52,9 +53,9 @@ def pack(axis_manager, columns: dict, preferred_rows, n_slots: int) -> core.Axis
         raise ValueError(f"{ncand} candidates do not fit in {n_dets} detectors x {n_slots} slots")
     rows, slots = _assign_cells(preferred, n_dets, n_slots)
     out = core.AxisManager(axis_manager.dets, core.IndexAxis(SLOT_AXIS, n_slots))
-    valid = np.zeros((n_dets, n_slots), bool)
-    valid[rows, slots] = True
-    out.wrap("valid", valid, [(0, "dets"), (1, SLOT_AXIS)])
+    occupied = np.zeros((n_dets, n_slots), bool)
+    occupied[rows, slots] = True
+    out.wrap("occupied", occupied, [(0, "dets"), (1, SLOT_AXIS)])
     cand_id = np.full((n_dets, n_slots), -1)
     cand_id[rows, slots] = np.arange(ncand)
     out.wrap("cand_id", cand_id, [(0, "dets"), (1, SLOT_AXIS)])
@@ -76,9 +77,10 @@ def pack(axis_manager, columns: dict, preferred_rows, n_slots: int) -> core.Axis
 def unpack(packed: core.AxisManager, fields=None) -> dict:
     """Rows of a packed catalogue (possibly several concatenated groups), ordered by
     detector then slot. Adds ``det`` (the readout id of the holding detector)."""
-    valid = np.asarray(packed.valid, bool)
-    rows, slots = np.nonzero(valid)
-    names = fields or [k for k in packed._fields if k != "valid"]
+    occupied = np.asarray(packed.occupied, bool)
+    rows, slots = np.nonzero(occupied)
+    names = fields or [k for k in packed._fields
+                       if packed._assignments[k] == ["dets", SLOT_AXIS] and k != "occupied"]
     out = {name: np.asarray(packed[name])[rows, slots] for name in names}
     out["det"] = np.asarray(packed.dets.vals)[rows]
     return out

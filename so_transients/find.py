@@ -29,7 +29,7 @@ class FindConfig:
     eps: float | None = None          # DBSCAN scale (radians); None: sigma_FWHM of the band
     dbscan_min_samples: int = 5       # DBSCAN core-point neighbourhood (scikit-learn default)
     min_cluster_samples: int = 11     # "more than 10 samples"
-    max_candidates: int = 200         # per group; the rest are dropped with a warning
+    max_candidates: int = 2000        # per group; the rest are dropped with a warning
 
 
 def scan_segments(in_turnaround, az):

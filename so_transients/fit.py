@@ -5,7 +5,9 @@ All samples of the group within ``window`` seconds of the candidate's median tim
 
     A(theta) = A0 B(theta - theta_src) + C
 
-on the amplitude timestream, by ``scipy.optimize.curve_fit``. The fit works in focal-plane
+on the amplitude timestream, by ``scipy.optimize.curve_fit``. Samples farther along the scan
+than the filter's response reaches (plus the allowed position shift) carry no beam signal and
+are left out. The fit works in focal-plane
 coordinates: over one second the sky position ``theta_src`` traces a known track across the
 focal plane (one quaternion per sample), and a shift of the source on the sky is a constant
 shift ``(dxi, deta)`` of that track, so every sample's offset from the source is exact without
@@ -37,6 +39,7 @@ class FitConfig:
     window: float = 0.5          # s, half-width of the time window around the median time
     radius: float = np.radians(1.0)
     min_snr: float = 5.0         # keep A0 / sigma_A >= min_snr
+    cross_scan_sigma: float = 8.0  # detectors passing within this many beam sigmas are fitted
     n_null: int = 200            # random positions used to measure the error scale
 
 
@@ -53,14 +56,28 @@ class Track:
     response: np.ndarray
 
 
+def _offsets(track: Track, det_xi, det_eta):
+    """Along- and across-scan offsets (ndet, nt) of detectors from the unshifted track."""
+    ox = det_xi[:, None] - track.xi[None, :]
+    oy = det_eta[:, None] - track.eta[None, :]
+    return (ox * track.along[0] + oy * track.along[1],
+            -ox * track.along[1] + oy * track.along[0])
+
+
 def beam_shape(track: Track, det_xi, det_eta, dxi=0.0, deta=0.0):
     """Beam-through-filter response, shape (ndet, nt), for a source shifted by (dxi, deta)."""
-    ox = det_xi[:, None] - (track.xi[None, :] + dxi)
-    oy = det_eta[:, None] - (track.eta[None, :] + deta)
-    along = ox * track.along[0] + oy * track.along[1]
-    across = -ox * track.along[1] + oy * track.along[0]
-    shape = np.interp(along / track.speed, track.lags, track.response, left=0.0, right=0.0)
-    return shape * np.exp(-0.5 * (across / track.sigma) ** 2)
+    along, across = _offsets(track, det_xi, det_eta)
+    return _shape(track, along, across, dxi, deta)[0]
+
+
+def _shape(track, along0, across0, dxi, deta):
+    ux, uy = track.along
+    along = along0 - (dxi * ux + deta * uy)
+    across = across0 - (-dxi * uy + deta * ux)
+    tau = along / track.speed
+    resp = np.interp(tau, track.lags, track.response, left=0.0, right=0.0)
+    gauss = np.exp(-0.5 * (across / track.sigma) ** 2)
+    return resp * gauss, tau, across, gauss
 
 
 def linear_amplitude(shape, amp, weight):
@@ -83,17 +100,35 @@ def fit_candidate(track: Track, det_xi, det_eta, amp, sigma_amp, inflation=1.0, 
     out.update(n_fit_samples=int(ok.sum()), n_fit_dets=int(ok.any(axis=1).sum()), fit_ok=False)
     if ok.sum() < 8:
         return out
-    rows, cols = np.nonzero(ok)
-    y, s = amp[rows, cols], sigma_amp[rows]
+    along_all, _ = _offsets(track, det_xi, det_eta)
+    support = track.speed * np.max(np.abs(track.lags[np.abs(track.response) > 0.02]), initial=0.0)
+    ok &= np.abs(along_all) <= support + 3 * track.sigma   # beyond, samples only constrain C
+    out.update(n_fit_samples=int(ok.sum()), n_fit_dets=int(ok.any(axis=1).sum()))
+    if ok.sum() < 8:
+        return out
+    along0, across0 = (v[ok] for v in _offsets(track, det_xi, det_eta))
+    y = amp[ok].astype(float)
+    s = np.broadcast_to(sigma_amp[:, None], amp.shape)[ok]
+    slope = np.gradient(track.response, track.lags)
+    ux, uy = track.along
 
     def model(_, a0, dxi, deta, c):
-        return a0 * beam_shape(track, det_xi, det_eta, dxi, deta)[rows, cols] + c
+        return a0 * _shape(track, along0, across0, dxi, deta)[0] + c
 
-    a_start, _ = linear_amplitude(beam_shape(track, det_xi, det_eta)[rows, cols], y, s**-2)
+    def jacobian(_, a0, dxi, deta, c):
+        shape, tau, across, gauss = _shape(track, along0, across0, dxi, deta)
+        d_resp = np.interp(tau, track.lags, slope, left=0.0, right=0.0) / track.speed * gauss
+        d_gauss = shape * across / track.sigma**2
+        # d along / d(dxi, deta) = -(ux, uy); d across / d(dxi, deta) = (uy, -ux)
+        d_dxi = a0 * (-ux * d_resp - uy * d_gauss)
+        d_deta = a0 * (-uy * d_resp + ux * d_gauss)
+        return np.stack([shape, d_dxi, d_deta, np.ones_like(shape)], axis=1)
+
+    a_start, _ = linear_amplitude(model(None, 1.0, 0.0, 0.0, 0.0), y, s**-2)
     reach = 3 * track.sigma
     try:
         popt, pcov = curve_fit(model, None, y, p0=[max(a_start, 1e-3), 0.0, 0.0, 0.0], sigma=s,
-                               absolute_sigma=True,
+                               absolute_sigma=True, jac=jacobian,
                                bounds=([0, -reach, -reach, -np.inf], [np.inf, reach, reach, np.inf]))
     except (RuntimeError, ValueError):
         return out

@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+from scipy import ndimage
 from scipy.spatial import cKDTree
 from sotodlib import core
 from sotodlib.preprocess import Pipeline, _Preprocess
@@ -97,33 +98,56 @@ def beam_fwhm(bands, table_arcmin, where):
     return np.array([table_arcmin[b] for b in bands]) * ARCMIN
 
 
-def scan_speed(aman):
-    """Median on-sky speed of the boresight (rad/s) from az and el."""
+def sample_speed(aman):
+    """On-sky speed of the boresight at every sample (rad/s), from az and el."""
     t = np.asarray(aman.timestamps)
-    daz = np.diff(np.unwrap(np.asarray(aman.boresight.az))) / np.diff(t)
-    speed = np.abs(daz) * np.cos(np.asarray(aman.boresight.el)[1:])
+    daz = np.gradient(np.unwrap(np.asarray(aman.boresight.az)), t)
+    return np.abs(daz) * np.cos(np.asarray(aman.boresight.el))
+
+
+def scan_speed(aman):
+    """Median on-sky speed of the boresight (rad/s) while it scans."""
+    speed = sample_speed(aman)
     moving = speed[speed > 0.5 * np.percentile(speed, 90)] if len(speed) else speed
     if not len(moving) or np.median(moving) <= 0:
         raise ValueError(f"{describe(aman)}: the boresight does not scan")
     return float(np.median(moving))
 
 
+BORE_Q = "transient_bore_q"
+
+
+def boresight_q(aman):
+    """Celestial boresight quaternion of every sample, (nsamps, 4), computed once per aman.
+
+    This is one quaternion per sample (25 MB for an hour at 220 Hz), not per detector; it is
+    kept in ``aman.transient_bore_q`` (not saved) for the later steps.
+    """
+    if BORE_Q not in aman._fields:
+        roll = aman.boresight.roll if "roll" in aman.boresight._fields else None
+        q = pointing.boresight_quats(aman.timestamps, aman.boresight.az, aman.boresight.el, roll)
+        aman.wrap(BORE_Q, q, [(0, "samps")])
+    return np.asarray(aman[BORE_Q])
+
+
 def sample_radec(aman, dets, samps):
-    """RA/Dec of chosen (detector, sample) pairs: boresight pointing for those samples only."""
-    uniq, inverse = np.unique(samps, return_inverse=True)
-    roll = aman.boresight.roll[uniq] if "roll" in aman.boresight._fields else None
-    q = pointing.boresight_quats(aman.timestamps[uniq], aman.boresight.az[uniq],
-                                 aman.boresight.el[uniq], roll)
-    return pointing.radec_of_samples(q, aman.focal_plane.xi, aman.focal_plane.eta, dets, inverse)
+    """RA/Dec of chosen (detector, sample) pairs only."""
+    return pointing.radec_of_samples(boresight_q(aman), aman.focal_plane.xi,
+                                     aman.focal_plane.eta, dets, samps)
 
 
-def boresight_at(aman, times):
-    """Boresight quaternions at arbitrary times (linear interpolation of az, el, roll)."""
-    t = aman.timestamps
-    interp = lambda v: np.interp(times, t, np.unwrap(np.asarray(v)))
-    roll = interp(aman.boresight.roll) if "roll" in aman.boresight._fields else None
-    return pointing.boresight_quats(np.asarray(times, float), interp(aman.boresight.az),
-                                    interp(aman.boresight.el), roll)
+def drift_velocity(aman, ra, dec, times, half_span=0.05):
+    """Velocity (rad/s) of sky positions across the focal plane at the given times, (n, 2)."""
+    q = boresight_q(aman)
+    t = np.asarray(aman.timestamps)
+    out = np.zeros((len(ra), 2))
+    for k in range(len(ra)):
+        i0, i1 = np.clip(np.searchsorted(t, [times[k] - half_span, times[k] + half_span]),
+                         0, len(t) - 1)
+        i1 = max(i1, min(i0 + 1, len(t) - 1))
+        xi, eta = pointing.source_in_focal_plane(q[[i0, i1]], ra[k], dec[k])
+        out[k] = np.array([xi[1] - xi[0], eta[1] - eta[0]]) / max(t[i1] - t[i0], 1e-9)
+    return out
 
 
 def detector_pitch(xi, eta):
@@ -278,7 +302,11 @@ class TransientFind(_Preprocess):
     Needs ``transient_filter`` before it. Scans are split at turnarounds from
     ``aman.flags.turnarounds`` (sotodlib's ``flag_turnarounds`` step) when present, otherwise
     computed with ``tod_ops.flags.get_turnaround_flags``. RA/Dec is computed only for the
-    selected samples (so3g quaternions). DBSCAN clusters them per scan and band with
+    selected samples (so3g quaternions). Samples where the scan speed differs from the
+    template's by more than ``speed_tolerance`` (the ends of turnarounds) are left out too,
+    and so are ``turnaround_buffer`` seconds on either side of them, where the high-pass filter
+    still rings from the turnaround.
+    DBSCAN clusters them per scan and band with
     ``eps = sigma_FWHM = FWHM / (2 sqrt(ln 2))`` unless ``eps_arcmin`` is given; clusters of more
     than 10 samples become candidates (at most ``max_candidates`` per group, with a warning).
 
@@ -297,7 +325,9 @@ class TransientFind(_Preprocess):
           eps_arcmin: null                # null: sigma_FWHM of each band
           dbscan_min_samples: 5
           min_cluster_samples: 11         # clusters of more than 10 samples
-          max_candidates: 200
+          max_candidates: 2000
+          speed_tolerance: 0.1            # leave out samples scanning >10% off nominal speed
+          turnaround_buffer: 2.0          # s left out around those samples
           catalog_slots: 4                # catalogue cells per detector in the archive
         save: true
     """
@@ -310,6 +340,8 @@ class TransientFind(_Preprocess):
         self.slots = int(cfg.pop("catalog_slots", 4))
         self.bandpass_field = cfg.pop("bandpass_field", "bandpass")
         self.fwhm_table = {**DEFAULT_FWHM_ARCMIN, **cfg.pop("beam_fwhm_arcmin", {})}
+        self.speed_tolerance = float(cfg.pop("speed_tolerance", 0.1))
+        self.turnaround_buffer = float(cfg.pop("turnaround_buffer", 2.0))
         eps = cfg.pop("eps_arcmin", None)
         self.find_cfg = FindConfig(eps=None if eps is None else eps * ARCMIN, **cfg)
 
@@ -321,6 +353,13 @@ class TransientFind(_Preprocess):
         in_ta = np.asarray(ta.mask() if hasattr(ta, "mask") else ta, bool)
         if in_ta.ndim == 2:     # per-detector flags: the boresight's are the same for all
             in_ta = in_ta[0]
+        # the template assumes the nominal scan speed: leave out samples far from it
+        in_ta = in_ta | (np.abs(sample_speed(aman) / scan_speed(aman) - 1) > self.speed_tolerance)
+        # the high-pass rings for ~1/f_hp after the kink a turnaround leaves in the atmosphere
+        n_buf = int(round(self.turnaround_buffer * (aman.samps.count - 1)
+                          / (aman.timestamps[-1] - aman.timestamps[0])))
+        if n_buf and in_ta.any():
+            in_ta = ndimage.binary_dilation(in_ta, np.ones(2 * n_buf + 1, bool))
         return scan_segments(in_ta, np.asarray(aman.boresight.az))
 
     def calc_and_save(self, aman, proc_aman):
@@ -340,6 +379,9 @@ class TransientFind(_Preprocess):
             c["peak_det"], h["det"] = dets[c["peak_det"].astype(int)], dets[h["det"].astype(int)]
             h["cand"] = h["cand"] + len(cands.get("scan", []))
             c["bandpass"] = np.full(len(c["scan"]), band)
+            wafers = (np.asarray(aman.det_info.wafer_slot).astype(str)
+                      if "wafer_slot" in aman.det_info._fields else np.full(aman.dets.count, ""))
+            c["wafer_slot"] = wafers[c["peak_det"]]
             for store, part in ((cands, c), (hits, h)):
                 for k, v in part.items():
                     store[k] = np.concatenate([store[k], v]) if k in store else v
@@ -370,6 +412,7 @@ class TransientFind(_Preprocess):
                                               "t_start", "t_stop", "t_peak", "snr_max",
                                               "n_samples", "n_dets", "peak_det")}
             cands["bandpass"] = np.zeros(0, "U4")
+            cands["wafer_slot"] = np.zeros(0, "U4")
             hits = {k: np.zeros(0) for k in ("cand", "det", "samp", "snr", "ra", "dec")}
         for name in ("transient_candidates", "transient_hits"):
             if name in aman._fields:
@@ -433,8 +476,7 @@ class TransientCuts(_Preprocess):
         hits = _table_from_aman(aman.transient_hits, HIT_AXIS)
         hits["cand"], hits["det"], hits["samp"] = (hits[k].astype(int) for k in ("cand", "det", "samp"))
         n = len(cands["scan"])
-        drift = np.array([self._drift(aman, cands["ra"][c], cands["dec"][c], cands["t_median"][c])
-                          for c in range(n)]).reshape(n, 2)
+        drift = drift_velocity(aman, cands["ra"], cands["dec"], cands["t_median"]).reshape(n, 2)
         fp = aman.focal_plane
         xi, eta, gamma = (np.asarray(fp[k]) for k in ("xi", "eta", "gamma"))
         result = {}
@@ -460,12 +502,6 @@ class TransientCuts(_Preprocess):
         self.save(proc_aman, aman, result)
         return aman, proc_aman
 
-    @staticmethod
-    def _drift(aman, ra, dec, t):
-        q = boresight_at(aman, [t - 0.05, t + 0.05])
-        xi, eta = pointing.source_in_focal_plane(q, ra, dec)
-        return np.array([xi[1] - xi[0], eta[1] - eta[0]]) / 0.1
-
     def save(self, proc_aman, aman, result):
         if not self.save_cfgs:
             return
@@ -478,7 +514,9 @@ class TransientFit(_Preprocess):
     """Fit the beam model A0 B(theta - theta_src) + C to each candidate that passed the cuts.
 
     All samples of the group within ``window`` s of the candidate's median time and within
-    ``radius_deg`` of its position are fitted on the amplitude timestream with
+    ``radius_deg`` of its position, from detectors whose path passes within
+    ``cross_scan_sigma`` beam sigmas of it (the others carry no beam signal), are fitted on the
+    amplitude timestream with
     ``scipy.optimize.curve_fit`` (see :mod:`so_transients.fit`); a candidate is a detection when
     ``A0 / sigma_A >= min_snr``. Errors are scaled by ``error_scale``, the measured spread of
     the same fit at ``n_null`` random positions away from candidates (residual atmosphere is
@@ -502,6 +540,7 @@ class TransientFit(_Preprocess):
           window: 0.5                     # s around the median time
           radius_deg: 1.0
           min_snr: 5.0
+          cross_scan_sigma: 8.0           # detectors passing within this many beam sigmas
           n_null: 200                     # random positions measuring the error scale
           seed: 0                         # for the random null positions
         save: true
@@ -550,9 +589,7 @@ class TransientFit(_Preprocess):
 
     def _track(self, aman, ra, dec, lo, hi):
         t = np.asarray(aman.timestamps)
-        roll = aman.boresight.roll[lo:hi] if "roll" in aman.boresight._fields else None
-        q = pointing.boresight_quats(t[lo:hi], aman.boresight.az[lo:hi],
-                                     aman.boresight.el[lo:hi], roll)
+        q = boresight_q(aman)[lo:hi]
         xi, eta = pointing.source_in_focal_plane(q, ra, dec)
         velocity = np.array([xi[-1] - xi[0], eta[-1] - eta[0]]) / (t[hi - 1] - t[lo])
         speed = float(np.hypot(*velocity))
@@ -571,8 +608,10 @@ class TransientFit(_Preprocess):
         xi, eta = np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta)
         near = pointing.angular_distance_xieta(xi[dets], eta[dets], track.xi[mid],
                                                track.eta[mid]) <= self.fit_cfg.radius
-        dets = dets[near]
-        track.sigma = float(np.median(np.asarray(summary.beam_sigma)[dets])) if len(dets) else 1.0
+        sigma = float(np.median(np.asarray(summary.beam_sigma)[dets])) if len(dets) else 1.0
+        across = -(xi[dets] - track.xi[mid]) * track.along[1] + (eta[dets] - track.eta[mid]) * track.along[0]
+        dets = dets[near & (np.abs(across) <= self.fit_cfg.cross_scan_sigma * sigma)]
+        track.sigma = sigma
         res = fit_candidate(track, xi[dets], eta[dets], aman.transient_amp[dets, lo:hi],
                             np.asarray(summary.sigma_amp)[dets],
                             float(np.median(np.asarray(summary.fit_inflation))), error_scale)
@@ -628,7 +667,8 @@ class TransientFit(_Preprocess):
         if not self.save_cfgs:
             return
         peak = np.asarray(aman.transient_candidates.peak_det).astype(int)
-        proc_aman.wrap(self.name, catalog.pack(proc_aman, result, peak, self.slots))
+        renamed = {(f"fit_{k}" if k in ("ra", "dec") else k): v for k, v in result.items()}
+        proc_aman.wrap(self.name, catalog.pack(proc_aman, renamed, peak, self.slots))
 
     def plot(self, aman, proc_aman, filename):
         if not self.plot_cfgs:

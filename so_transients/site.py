@@ -1,0 +1,56 @@
+"""Running sotodlib's site preprocess pipeline on a dataset with the transient steps."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+
+TEMPLATE = Path(__file__).resolve().parent.parent / "configs" / "preprocess_transients.yaml"
+
+
+def site_config(dataset, template=TEMPLATE, overrides=None) -> dict:
+    """The preprocess config ``template`` pointed at ``dataset`` (its context.yaml), with the
+    archive and plots in ``<dataset>/preprocess``. ``overrides``: {step name: {section: dict}}
+    merged into the matching ``process_pipe`` entries."""
+    dataset = Path(dataset).resolve()
+    with open(template) as f:
+        cfg = yaml.safe_load(f)
+    out = dataset / "preprocess"
+    cfg["context_file"] = str(dataset / "context.yaml")
+    cfg["plot_dir"] = str(out / "plots")
+    cfg["archive"]["index"] = str(out / "process_archive.sqlite")
+    cfg["archive"]["policy"]["filename"] = str(out / "preprocess_archive.h5")
+    for step in cfg["process_pipe"]:
+        for section, values in (overrides or {}).get(step["name"], {}).items():
+            if isinstance(values, dict) and isinstance(step.get(section), dict):
+                step[section].update(values)
+            else:
+                step[section] = values
+    return cfg
+
+
+def write_site_config(dataset, path=None, template=TEMPLATE, overrides=None) -> Path:
+    """Write :func:`site_config` to ``path`` (default ``<dataset>/preprocess.yaml``)."""
+    cfg = site_config(dataset, template, overrides)
+    path = Path(path or Path(dataset) / "preprocess.yaml")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w") as f:
+        yaml.safe_dump(cfg, f, sort_keys=False)
+    return path
+
+
+def run_site_pipeline(config_path, nproc=1, extra_args=(), check=True):
+    """``python -m sotodlib.site_pipeline.preprocess_tod CONFIG`` in a subprocess.
+
+    The site pipeline logs failed groups to ``errlog.txt`` next to the archive index and still
+    exits 0, so callers must inspect the archive (see :mod:`so_transients.results`).
+    """
+    env = dict(os.environ)
+    env.setdefault("OMP_WAIT_POLICY", "passive")
+    env.setdefault("OMP_NUM_THREADS", "1")
+    cmd = [sys.executable, "-m", "sotodlib.site_pipeline.preprocess_tod", str(config_path),
+           "--nproc", str(nproc), "--verbosity", "1", *extra_args]
+    return subprocess.run(cmd, env=env, check=check, capture_output=True, text=True)

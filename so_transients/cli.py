@@ -4,6 +4,8 @@ Subcommands:
 
 * ``simulate CONFIG``: simulate SO LAT observations into a sotodlib dataset;
 * ``summary CONTEXT``: describe a dataset as loaded through its context.yaml;
+* ``site-config DATASET``: the transient site preprocess config pointed at a dataset;
+* ``catalog ARCHIVE_OR_CONFIG -o FILE``: every group's detections in one table (ECSV/FITS);
 * ``demo``: the main job on built-in default data (``make demo``).
 """
 from __future__ import annotations
@@ -35,14 +37,30 @@ def _summary(args):
     print(dataset_summary(args.context))
 
 
+def _site_config(args):
+    from .site import write_site_config
+
+    print(write_site_config(args.dataset, args.out))
+
+
+def _catalog(args):
+    from .results import archive_table, write_table
+
+    table = archive_table(args.archive, detected_only=not args.all)
+    path = write_table(table, args.out)
+    print(f"{len(table)} {'candidates' if args.all else 'detections'} written to {path}")
+
+
 def _demo(args):
+    from .demo import run_demo
+    from .summary import dataset_summary
+
     args.config = args.config or DEMO_CONFIG
     args.seed = None
     args.overwrite = True
     result = _simulate(args)
-    from .summary import dataset_summary
-
     print(dataset_summary(result.context))
+    print(run_demo(result.context.parent, nproc=args.nproc))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -62,9 +80,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("context", help="path to context.yaml")
     p.set_defaults(func=_summary)
 
-    p = sub.add_parser("demo", help="simulate the default observation and summarize it")
+    p = sub.add_parser("site-config", help="write the site preprocess config for a dataset")
+    p.add_argument("dataset", help="dataset folder (holds context.yaml)")
+    p.add_argument("-o", "--out", help="output YAML (default: DATASET/preprocess.yaml)")
+    p.set_defaults(func=_site_config)
+
+    p = sub.add_parser("catalog", help="collect detections from a preprocess archive")
+    p.add_argument("archive", help="archive index (.sqlite) or preprocess config (.yaml)")
+    p.add_argument("-o", "--out", default="detections.ecsv", help="ECSV or FITS output")
+    p.add_argument("--all", action="store_true",
+                   help="every candidate with its cut reason, not only detections")
+    p.set_defaults(func=_catalog)
+
+    p = sub.add_parser("demo", help="simulate the default observation, run the site pipeline "
+                                    "and compare detections with the injected flares")
     p.add_argument("--config", help=f"simulation YAML (default: {DEMO_CONFIG.name})")
     p.add_argument("-o", "--out", default="data/demo", help="output folder")
+    p.add_argument("--nproc", type=int, default=2, help="site pipeline processes")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_demo)
     return parser
@@ -76,7 +108,7 @@ def main(argv=None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     try:
         args.func(args)
-    except (ValueError, FileNotFoundError, FileExistsError) as exc:
+    except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as exc:
         print(f"so-transients {args.command}: error: {exc}", file=sys.stderr)
         return 2
     return 0

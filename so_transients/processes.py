@@ -349,7 +349,10 @@ class TransientFind(_Preprocess):
         if "flags" in aman and "turnarounds" in aman.flags._fields:
             ta = aman.flags.turnarounds
         else:
-            ta, _, _ = tod_flags.get_turnaround_flags(aman, merge=False)
+            try:
+                ta, _, _ = tod_flags.get_turnaround_flags(aman, merge=False)
+            except (ValueError, IndexError):   # shorter than one scan: no turnaround to flag
+                ta = np.zeros(aman.samps.count, bool)
         in_ta = np.asarray(ta.mask() if hasattr(ta, "mask") else ta, bool)
         if in_ta.ndim == 2:     # per-detector flags: the boresight's are the same for all
             in_ta = in_ta[0]
@@ -564,7 +567,9 @@ class TransientFit(_Preprocess):
         n = len(cands["scan"])
         passed = cands.get("passed", np.ones(n, bool)).astype(bool)
         bands = bandpasses(aman, self.bandpass_field)
-        scales = {b: self._error_scale(aman, np.flatnonzero(bands == b), cands["t_median"])
+        # nulls avoid only possible sources (candidates that passed the cuts): avoiding every
+        # candidate would leave only the quietest stretches and bias the scale low
+        scales = {b: self._error_scale(aman, np.flatnonzero(bands == b), cands["t_median"][passed])
                   for b in np.unique(cands["bandpass"][passed])}
         rows = [self._fit_one(aman, cands, c, np.flatnonzero(bands == cands["bandpass"][c]),
                               scales[cands["bandpass"][c]]) if passed[c] else {}

@@ -106,7 +106,7 @@ def find_candidates(snr, timestamps, scan, directions, radec, eps, cfg: FindConf
                            timestamps)
     cands = {k: np.asarray(v) for k, v in cands.items()}
     hits = {k: np.asarray(v) for k, v in hits.items()}
-    return _cap(cands, hits, cfg.max_candidates)
+    return cap_candidates(cands, hits, cfg.max_candidates)
 
 
 def _add_candidate(cands, hits, members, scan, direction, dets, samps, values, ra, dec, t):
@@ -126,13 +126,14 @@ def _add_candidate(cands, hits, members, scan, direction, dets, samps, values, r
     hits["cand"].extend([cid] * len(members))
 
 
-def _cap(cands, hits, max_candidates):
+def cap_candidates(cands, hits, max_candidates, where=""):
+    """Keep the ``max_candidates`` candidates of highest S/N (with a warning), renumbering hits."""
     n = len(cands["scan"])
     if n <= max_candidates:
         return cands, hits
-    log.warning("%d candidates found, more than max_candidates=%d: keeping the %d with the "
-                "highest S/N (a glitch storm or a very bright source?)", n, max_candidates,
-                max_candidates)
+    log.warning("%s%d candidates found, more than the cap of %d: keeping the %d with the "
+                "highest S/N (a glitch storm or a very bright source?)",
+                f"{where}: " if where else "", n, max_candidates, max_candidates)
     keep = np.sort(np.argsort(-cands["snr_max"], kind="stable")[:max_candidates])
     renumber = np.full(n, -1)
     renumber[keep] = np.arange(len(keep))

@@ -26,7 +26,7 @@ from sotodlib.tod_ops import flags as tod_flags
 from . import catalog, pointing
 from .bands import ARCMIN, HARDWARE_BAND_KEY, get_band
 from .cuts import CutsConfig, apply_cuts, read_catalog
-from .find import FindConfig, find_candidates, scan_segments
+from .find import FindConfig, cap_candidates, find_candidates, scan_segments
 from .fit import FitConfig, Track, fit_candidate, null_scatter
 from .matched_filter import FilterConfig, filter_kernels, fit_error_inflation, matched_filter
 
@@ -395,18 +395,9 @@ class TransientFind(_Preprocess):
 
     def _limit(self, aman, cands, hits):
         cap = min(self.find_cfg.max_candidates, catalog.capacity(aman.dets.count, self.slots))
-        n = len(cands.get("scan", []))
-        if n <= cap:
+        if not cands:
             return cands, hits
-        log.warning("%s: %d candidates, keeping the %d with the highest S/N", describe(aman), n, cap)
-        keep = np.sort(np.argsort(-cands["snr_max"], kind="stable")[:cap])
-        new_id = np.full(n, -1)
-        new_id[keep] = np.arange(len(keep))
-        cands = {k: v[keep] for k, v in cands.items()}
-        ok = new_id[hits["cand"]] >= 0
-        hits = {k: v[ok] for k, v in hits.items()}
-        hits["cand"] = new_id[hits["cand"]]
-        return cands, hits
+        return cap_candidates(cands, hits, cap, describe(aman))
 
     def _wrap(self, aman, cands, hits):
         n = len(cands.get("scan", []))

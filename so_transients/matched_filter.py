@@ -21,9 +21,11 @@ the S/N and amplitude are set to zero there, within ``mask_buffer`` seconds of t
 Dead detectors (no finite, non-constant samples) get zero S/N and ``dead = True``.
 
 The PSD is estimated from data that contain any sources. A source therefore weights itself
-down slightly, biasing its own amplitude low by its share of the noise power in the bins it
-occupies: about (A T / sigma)^2 / N, below 1 % for a 1.5 Jy f090 crossing in a 10-minute TOD
-(and 9 % in a 60-second one), negligible for the hour-long observations the method targets.
+down, biasing its own amplitude low by its share of the noise power in the bins it occupies:
+about (A T / sigma)^2 / N, below 1 % for a 1.5 Jy f090 crossing in a 10-minute TOD but far more
+for very bright sources or short TODs. Detectors whose S/N exceeds ``bright_snr`` are therefore
+filtered a second time, with their PSD re-estimated after the bright samples are interpolated
+over; this costs one more FFT pair for those few detectors only.
 """
 from __future__ import annotations
 
@@ -47,6 +49,8 @@ class FilterConfig:
     edge_buffer: float = 5.0
     mask_buffer: float = 0.2
     chunk_dets: int = 64                   # detectors per FFT batch (memory)
+    bright_snr: float | None = 10.0        # refilter rows above this S/N with the source masked
+    source_mask_snr: float = 3.0           # ... masking samples above this S/N
     workers: int = 1                       # FFT threads
     knee_bounds: tuple = (0.05, 10.0)      # limits of a fitted knee
 
@@ -165,6 +169,82 @@ def _valid_mask(bad, nsamp, sample_rate, cfg):
     return valid
 
 
+class _Spectral:
+    """What every detector chunk shares: FFT length, frequencies, weights and templates."""
+
+    def __init__(self, nsamp, sample_rate, sigma_t, cfg):
+        self.nsamp, self.cfg = nsamp, cfg
+        self.nfft = scipy.fft.next_fast_len(nsamp, real=True)
+        self.freqs = scipy.fft.rfftfreq(self.nfft, 1.0 / sample_rate)
+        self.weight = np.full(len(self.freqs), 2.0)
+        self.weight[0] = 1.0
+        if self.nfft % 2 == 0:
+            self.weight[-1] = 1.0
+        self.white_sel = ((self.freqs >= cfg.white_band[0])
+                          & (self.freqs <= min(cfg.white_band[1], self.freqs[-1])))
+        if not self.white_sel.any():
+            raise ValueError(f"white_band {cfg.white_band} Hz is outside the spectrum "
+                             f"(Nyquist {self.freqs[-1]:.1f} Hz)")
+        self.templates = {s: gaussian_template_spectrum(self.nfft, sample_rate, s)
+                          for s in np.unique(sigma_t)}
+
+    def spectrum(self, x):
+        """rfft of the rows of ``x``, their smoothed PSD and white level."""
+        spec = scipy.fft.rfft(x, n=self.nfft, axis=1, workers=self.cfg.workers)
+        psd = smoothed_psd((spec.real**2 + spec.imag**2).astype(np.float32),
+                           self.cfg.bins_per_decade)
+        return spec, psd, psd[:, self.white_sel].mean(axis=1).astype(float)
+
+    def apply(self, spec, psd, white, sigma_t):
+        """Filtered rows ``y`` and, per row, the amplitude normalization, Var(y) and knee."""
+        cfg = self.cfg
+        if cfg.highpass is None:
+            fknee = fit_knee(self.freqs, psd, white, cfg.knee_bounds, cfg.white_band[0])
+            fknee[np.isnan(fknee)] = cfg.knee_bounds[0]
+        else:
+            fknee = np.full(len(white), float(cfg.highpass))
+        tmpl = np.stack([self.templates[s] for s in sigma_t])
+        gain = butterworth_highpass(self.freqs, fknee, cfg.order) * tmpl / psd
+        gain[:, 0] = 0.0
+        norm = (self.weight * gain * tmpl).sum(axis=1) / self.nfft
+        var_y = (self.weight * gain**2 * psd).sum(axis=1) / self.nfft**2
+        y = scipy.fft.irfft(spec * gain, n=self.nfft, axis=1, workers=cfg.workers)[:, :self.nsamp]
+        return y, norm, var_y, fknee
+
+
+def _prepare(signal_rows, mask_rows, n_edge):
+    x = np.array(signal_rows, dtype=np.float32)
+    bad = ~np.isfinite(x)
+    if mask_rows is not None:
+        bad |= np.asarray(mask_rows, bool)
+    x[bad] = 0.0
+    _fill_bad(x, bad)
+    _remove_edge_line(x, n_edge)
+    return x, bad
+
+
+def _refilter_bright(sp, x, spec, y, norm, var_y, psd, white, sigma_t, valid, sample_rate):
+    """Second pass for rows holding a bright source: PSD re-estimated with it masked.
+
+    A source much brighter than the noise dominates its detector's spectrum and would weight
+    itself down; here samples with S/N above ``source_mask_snr`` (and 2 sigma_t around them) are
+    interpolated over before the PSD is estimated again, and the original data refiltered.
+    """
+    cfg = sp.cfg
+    snr0 = np.where(valid, np.abs(y) / np.sqrt(var_y)[:, None], 0.0)
+    rows = np.flatnonzero(snr0.max(axis=1) > cfg.bright_snr)
+    if not len(rows):
+        return
+    width = int(np.ceil(2 * np.max(sigma_t[rows]) * sample_rate))
+    masked = ndimage.binary_dilation(snr0[rows] > cfg.source_mask_snr,
+                                     structure=np.ones((1, 2 * width + 1), bool))
+    xm = x[rows].copy()
+    _fill_bad(xm, masked)
+    _, psd_m, white_m = sp.spectrum(xm)
+    y[rows], norm[rows], var_y[rows], _ = sp.apply(spec[rows], psd_m, white_m, sigma_t[rows])
+    psd[rows], white[rows] = psd_m, white_m
+
+
 def matched_filter(signal, sample_rate, sigma_t, cfg: FilterConfig = FilterConfig(),
                    mask=None) -> FilterResult:
     """Matched-filter every detector of ``signal`` (ndet, nsamps); see the module docstring.
@@ -177,58 +257,30 @@ def matched_filter(signal, sample_rate, sigma_t, cfg: FilterConfig = FilterConfi
     sigma_t = np.broadcast_to(np.asarray(sigma_t, dtype=float), (ndet,))
     if nsamp < 16:
         raise ValueError(f"only {nsamp} samples: too short to filter")
-    nfft = scipy.fft.next_fast_len(nsamp, real=True)
-    freqs = scipy.fft.rfftfreq(nfft, 1.0 / sample_rate)
-    weight = np.full(len(freqs), 2.0)
-    weight[0] = 1.0
-    if nfft % 2 == 0:
-        weight[-1] = 1.0
-    white_sel = (freqs >= cfg.white_band[0]) & (freqs <= min(cfg.white_band[1], freqs[-1]))
-    if not white_sel.any():
-        raise ValueError(f"white_band {cfg.white_band} Hz is outside the spectrum "
-                         f"(Nyquist {freqs[-1]:.1f} Hz)")
-    templates = {s: gaussian_template_spectrum(nfft, sample_rate, s) for s in np.unique(sigma_t)}
-
+    sp = _Spectral(nsamp, sample_rate, sigma_t, cfg)
     out = FilterResult(
         snr=np.zeros((ndet, nsamp), np.float32), amplitude=np.zeros((ndet, nsamp), np.float32),
         valid=np.zeros((ndet, nsamp), bool), noise_level=np.zeros(ndet),
         fknee=np.zeros(ndet), sigma_amp=np.zeros(ndet), snr_scale=np.zeros(ndet),
-        dead=np.zeros(ndet, bool), freqs=freqs, nfft=nfft)
+        dead=np.zeros(ndet, bool), freqs=sp.freqs, nfft=sp.nfft)
     psds = []
     n_edge = max(1, min(nsamp // 4, int(round(sample_rate))))
     for start in range(0, ndet, cfg.chunk_dets):
         sl = slice(start, min(start + cfg.chunk_dets, ndet))
-        x = np.array(signal[sl], dtype=np.float32)
-        bad = ~np.isfinite(x)
-        if mask is not None:
-            bad |= np.asarray(mask[sl], bool)
-        x[bad] = 0.0
-        _fill_bad(x, bad)
-        _remove_edge_line(x, n_edge)
-        spec = scipy.fft.rfft(x, n=nfft, axis=1, workers=cfg.workers)
-        del x
-        psd = smoothed_psd((spec.real**2 + spec.imag**2).astype(np.float32), cfg.bins_per_decade)
-        white = psd[:, white_sel].mean(axis=1).astype(float)
+        x, bad = _prepare(signal[sl], None if mask is None else mask[sl], n_edge)
+        spec, psd, white = sp.spectrum(x)
         dead = (white <= 0) | bad.all(axis=1)
         white[dead] = 1.0
         psd[dead] = 1.0
-        psds.append(psd[~dead])
-        if cfg.highpass is None:
-            fknee = fit_knee(freqs, psd, white, cfg.knee_bounds, cfg.white_band[0])
-            fknee[np.isnan(fknee)] = cfg.knee_bounds[0]
-        else:
-            fknee = np.full(len(white), float(cfg.highpass))
-        tmpl = np.stack([templates[s] for s in sigma_t[sl]])
-        gain = butterworth_highpass(freqs, fknee, cfg.order) * tmpl / psd
-        gain[:, 0] = 0.0
-        norm = (weight * gain * tmpl).sum(axis=1) / nfft
-        var_y = (weight * gain**2 * psd).sum(axis=1) / nfft**2
-        spec *= gain
-        y = scipy.fft.irfft(spec, n=nfft, axis=1, workers=cfg.workers)[:, :nsamp]
-        del spec, gain
-        sigma_y = np.sqrt(var_y)
+        y, norm, var_y, fknee = sp.apply(spec, psd, white, sigma_t[sl])
         valid = _valid_mask(bad, nsamp, sample_rate, cfg)
         valid[dead] = False
+        if cfg.bright_snr is not None:
+            _refilter_bright(sp, x, spec, y, norm, var_y, psd, white, sigma_t[sl], valid,
+                             sample_rate)
+        del x, spec
+        psds.append(psd[~dead])
+        sigma_y = np.sqrt(var_y)
         snr = (y / sigma_y[:, None]).astype(np.float32)
         measured = robust_std(snr, valid)
         scale = np.where(np.isfinite(measured) & (measured > 0), measured, 1.0)

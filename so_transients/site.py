@@ -45,12 +45,21 @@ def write_site_config(dataset, path=None, template=TEMPLATE, overrides=None) -> 
 def run_site_pipeline(config_path, nproc=1, extra_args=(), check=True):
     """``python -m sotodlib.site_pipeline.preprocess_tod CONFIG`` in a subprocess.
 
+    The progress-bar file (pb_<ctime>.txt) goes next to the archive index, not into the
+    working directory.
+
     The site pipeline logs failed groups to ``errlog.txt`` next to the archive index and still
     exits 0, so callers must inspect the archive (see :mod:`so_transients.results`).
     """
     env = dict(os.environ)
     env.setdefault("OMP_WAIT_POLICY", "passive")
     env.setdefault("OMP_NUM_THREADS", "1")
+    import yaml
+
+    with open(config_path) as f:
+        archive_dir = Path(yaml.safe_load(f)["archive"]["index"]).parent
+    archive_dir.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, "-m", "sotodlib.site_pipeline.preprocess_tod", str(config_path),
-           "--nproc", str(nproc), "--verbosity", "1", *extra_args]
+           "--nproc", str(nproc), "--verbosity", "1",
+           "--pb-path", str(archive_dir), *extra_args]
     return subprocess.run(cmd, env=env, check=check, capture_output=True, text=True)

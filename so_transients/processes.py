@@ -177,6 +177,20 @@ def _table_from_aman(sub, axis):
     return {k: np.asarray(sub[k]) for k in sub._fields if sub._assignments[k] == [axis]}
 
 
+def _catalog_step_config(step):
+    """Calc config of a catalogue step minus the keys every such step shares."""
+    cfg = dict(step.calc_cfgs) if isinstance(step.calc_cfgs, dict) else {}
+    step.slots = int(cfg.pop("catalog_slots", 4))
+    step.bandpass_field = cfg.pop("bandpass_field", "bandpass")
+    return cfg
+
+
+def _save_catalog(proc_aman, aman, name, columns, slots):
+    """Store per-candidate ``columns`` in ``proc_aman[name]``, on each candidate's peak detector."""
+    peak = np.asarray(aman.transient_candidates.peak_det).astype(int)
+    proc_aman.wrap(name, catalog.pack(proc_aman, columns, peak, slots))
+
+
 def _register(cls):
     """Register with sotodlib's Pipeline once (re-imports in workers are harmless)."""
     if Pipeline.PIPELINE.get(cls.name) is None:
@@ -336,9 +350,7 @@ class TransientFind(_Preprocess):
 
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
-        cfg = dict(self.calc_cfgs or {}) if isinstance(self.calc_cfgs, dict) else {}
-        self.slots = int(cfg.pop("catalog_slots", 4))
-        self.bandpass_field = cfg.pop("bandpass_field", "bandpass")
+        cfg = _catalog_step_config(self)
         self.fwhm_table = {**DEFAULT_FWHM_ARCMIN, **cfg.pop("beam_fwhm_arcmin", {})}
         self.speed_tolerance = float(cfg.pop("speed_tolerance", 0.1))
         self.turnaround_buffer = float(cfg.pop("turnaround_buffer", 2.0))
@@ -418,8 +430,8 @@ class TransientFind(_Preprocess):
         if not self.save_cfgs:
             return
         cands = _table_from_aman(aman.transient_candidates, CAND_AXIS)
-        peak = cands.pop("peak_det").astype(int)
-        proc_aman.wrap("transient_candidates", catalog.pack(proc_aman, cands, peak, self.slots))
+        cands.pop("peak_det")
+        _save_catalog(proc_aman, aman, "transient_candidates", cands, self.slots)
 
 
 @_register
@@ -456,8 +468,7 @@ class TransientCuts(_Preprocess):
 
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
-        cfg = dict(self.calc_cfgs or {}) if isinstance(self.calc_cfgs, dict) else {}
-        self.slots = int(cfg.pop("catalog_slots", 4))
+        cfg = _catalog_step_config(self)
         self.fwhm_table = {**DEFAULT_FWHM_ARCMIN, **cfg.pop("beam_fwhm_arcmin", {})}
         radius = cfg.pop("mask_radius_arcmin", None)
         self.cuts_cfg = CutsConfig(mask_radius=None if radius is None else radius * ARCMIN, **cfg)
@@ -497,10 +508,8 @@ class TransientCuts(_Preprocess):
         return aman, proc_aman
 
     def save(self, proc_aman, aman, result):
-        if not self.save_cfgs:
-            return
-        peak = np.asarray(aman.transient_candidates.peak_det).astype(int)
-        proc_aman.wrap(self.name, catalog.pack(proc_aman, result, peak, self.slots))
+        if self.save_cfgs:
+            _save_catalog(proc_aman, aman, self.name, result, self.slots)
 
 
 @_register
@@ -545,9 +554,7 @@ class TransientFit(_Preprocess):
 
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
-        cfg = dict(self.calc_cfgs or {}) if isinstance(self.calc_cfgs, dict) else {}
-        self.slots = int(cfg.pop("catalog_slots", 4))
-        self.bandpass_field = cfg.pop("bandpass_field", "bandpass")
+        cfg = _catalog_step_config(self)
         self.seed = int(cfg.pop("seed", 0))
         radius = cfg.pop("radius_deg", 1.0)
         self.fit_cfg = FitConfig(radius=np.radians(radius), **cfg)
@@ -660,11 +667,9 @@ class TransientFit(_Preprocess):
                             float(np.median(np.asarray(summary.fit_inflation))))
 
     def save(self, proc_aman, aman, result):
-        if not self.save_cfgs:
-            return
-        peak = np.asarray(aman.transient_candidates.peak_det).astype(int)
-        renamed = {(f"fit_{k}" if k in ("ra", "dec") else k): v for k, v in result.items()}
-        proc_aman.wrap(self.name, catalog.pack(proc_aman, renamed, peak, self.slots))
+        if self.save_cfgs:
+            renamed = {(f"fit_{k}" if k in ("ra", "dec") else k): v for k, v in result.items()}
+            _save_catalog(proc_aman, aman, self.name, renamed, self.slots)
 
     def plot(self, aman, proc_aman, filename):
         if not self.plot_cfgs:

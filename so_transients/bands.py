@@ -26,6 +26,16 @@ FLAVOR_BANDS = {"LAT_MF": ("f090", "f150"), "LAT_UHF": ("f220", "f280")}
 FLAVOR_SAMPLE_RATE = {"LAT_MF": 220.0, "LAT_UHF": 340.0}
 
 
+def fwhm_to_sigma(fwhm):
+    """Gaussian sigma for a FWHM: FWHM / (2 sqrt(2 ln 2))."""
+    return fwhm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
+
+
+def fwhm_to_sigma_fwhm(fwhm):
+    """The paper's clustering scale for a FWHM: sigma_FWHM = FWHM / (2 sqrt(ln 2))."""
+    return fwhm / (2.0 * np.sqrt(np.log(2.0)))
+
+
 @dataclass(frozen=True)
 class Band:
     """One observing band: name, beam FWHM (radians) and white noise per sample (mJy)."""
@@ -36,13 +46,13 @@ class Band:
 
     @property
     def sigma(self) -> float:
-        """Gaussian beam sigma in radians: FWHM / (2 sqrt(2 ln 2))."""
-        return self.fwhm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
+        """Gaussian beam sigma in radians."""
+        return fwhm_to_sigma(self.fwhm)
 
     @property
     def sigma_fwhm(self) -> float:
-        """The paper's clustering scale, sigma_FWHM = FWHM / (2 sqrt(ln 2)), in radians."""
-        return self.fwhm / (2.0 * np.sqrt(np.log(2.0)))
+        """The paper's clustering scale sigma_FWHM, in radians."""
+        return fwhm_to_sigma_fwhm(self.fwhm)
 
 
 @lru_cache(maxsize=1)

@@ -19,16 +19,12 @@ from sotodlib import core
 from .matching import crossing_times, match
 from .pointing import boresight_quats
 from .results import archive_table, write_table
-from .site import run_site_pipeline, write_site_config
+from .site import archive_index, run_site_pipeline, write_site_config
 
 
 def failed_groups(config_path) -> str:
     """Text of the site pipeline's errlog (failed groups), '' when none failed."""
-    import yaml
-
-    with open(config_path) as f:
-        index = Path(yaml.safe_load(f)["archive"]["index"])
-    errlog = index.parent / "errlog.txt"
+    errlog = archive_index(config_path).parent / "errlog.txt"
     return errlog.read_text() if errlog.exists() else ""
 
 

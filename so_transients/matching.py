@@ -12,6 +12,7 @@ import numpy as np
 from astropy import units as u
 from astropy.table import Table
 
+from .bands import fwhm_to_sigma
 from .lightcurve import active_window, flare_flux
 from .pointing import angular_distance_xieta, source_in_focal_plane
 
@@ -40,7 +41,7 @@ def crossing_times(timestamps, bore_q, det_xi, det_eta, flare, fwhm, min_gap=2.0
     if not len(close):
         return np.zeros(0)
     t = timestamps[lo:hi]
-    sigma = fwhm / np.sqrt(8 * np.log(2))
+    sigma = fwhm_to_sigma(fwhm)
     signal = flare_flux(t[close], flare["t_peak"], flare["s_peak"], flare["t_rise"],
                         flare["t_decay"], flare["eta_rise"], flare["eta_decay"]) \
         * np.exp(-0.5 * (dist[dist < fwhm] / sigma) ** 2)

@@ -24,7 +24,7 @@ from sotodlib.preprocess import Pipeline, _Preprocess
 from sotodlib.tod_ops import flags as tod_flags
 
 from . import catalog, pointing
-from .bands import ARCMIN, HARDWARE_BAND_KEY, get_band
+from .bands import ARCMIN, HARDWARE_BAND_KEY, fwhm_to_sigma, fwhm_to_sigma_fwhm, get_band
 from .cuts import CutsConfig, apply_cuts, read_catalog
 from .find import FindConfig, cap_candidates, find_candidates, scan_segments
 from .fit import FitConfig, Track, fit_candidate, null_scatter
@@ -264,7 +264,7 @@ class TransientFilter(_Preprocess):
                 "det_info")
         fs = check_timestamps(aman, self.name)
         bands = bandpasses(aman, self.bandpass_field)
-        beam_sigma = beam_fwhm(bands, self.fwhm_table, describe(aman)) / np.sqrt(8 * np.log(2))
+        beam_sigma = fwhm_to_sigma(beam_fwhm(bands, self.fwhm_table, describe(aman)))
         sigma_t = beam_sigma / scan_speed(aman) if aman.dets.count else beam_sigma
         res = matched_filter(aman.signal, fs, sigma_t, self.filter_cfg, mask=self._mask(aman))
         for name in ("transient_snr", "transient_amp", "transient_filter"):
@@ -387,7 +387,7 @@ class TransientFind(_Preprocess):
         for band in sorted(set(bands)):
             dets = np.flatnonzero(bands == band)
             fwhm = beam_fwhm([band], self.fwhm_table, describe(aman))[0]
-            eps = self.find_cfg.eps or fwhm / (2 * np.sqrt(np.log(2)))
+            eps = self.find_cfg.eps or fwhm_to_sigma_fwhm(fwhm)
             radec = lambda d, s, dets=dets: sample_radec(aman, dets[d], s)
             c, h = find_candidates(aman.transient_snr[dets], aman.timestamps, scan, directions,
                                    radec, eps, self.find_cfg)
@@ -488,7 +488,7 @@ class TransientCuts(_Preprocess):
         for band in np.unique(cands["bandpass"]):
             sel = np.flatnonzero(cands["bandpass"] == band)
             fwhm = beam_fwhm([band], self.fwhm_table, describe(aman))[0]
-            radius = self.cuts_cfg.mask_radius or fwhm / (2 * np.sqrt(np.log(2)))
+            radius = self.cuts_cfg.mask_radius or fwhm_to_sigma_fwhm(fwhm)
             sub_hits = {k: v[np.isin(hits["cand"], sel)] for k, v in hits.items()}
             sub_hits["cand"] = np.searchsorted(sel, sub_hits["cand"])
             part = apply_cuts({k: v[sel] for k, v in cands.items()}, sub_hits, xi, eta, gamma,

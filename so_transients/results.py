@@ -16,13 +16,13 @@ import os
 from pathlib import Path
 
 import numpy as np
-import yaml
 from astropy import units as u
 from astropy.table import Table, vstack
 from sotodlib import core
 from sotodlib.core.metadata import ManifestDb
 
 from .catalog import unpack
+from .site import archive_index
 
 CATALOGS = ("transient_candidates", "transient_cuts", "transient_fit")
 UNITS = {"ra": u.rad, "dec": u.rad, "ra_err": u.rad, "dec_err": u.rad, "flux": u.mJy,
@@ -89,19 +89,10 @@ def archive_entries(index_path):
     return out
 
 
-def index_from(archive_or_config) -> Path:
-    """The archive index path, from an index (.sqlite) or a preprocess config (.yaml)."""
-    path = Path(archive_or_config)
-    if path.suffix in (".yaml", ".yml"):
-        with open(path) as f:
-            return Path(yaml.safe_load(f)["archive"]["index"])
-    return path
-
-
 def archive_table(archive_or_config, detected_only=True) -> Table:
     """Every group of every observation in an archive, one group at a time, as one table."""
     tables = []
-    for obs_id, tags, filename, dataset in archive_entries(index_from(archive_or_config)):
+    for obs_id, tags, filename, dataset in archive_entries(archive_index(archive_or_config)):
         proc = core.AxisManager.load(filename, dataset)
         tables.append(proc_table(proc, obs_id, tags.get("wafer_slot")))
     table = vstack(tables) if tables else _empty_table()

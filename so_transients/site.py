@@ -11,6 +11,15 @@ import yaml
 TEMPLATE = Path(__file__).resolve().parent.parent / "configs" / "preprocess_transients.yaml"
 
 
+def archive_index(archive_or_config) -> Path:
+    """The archive index path, from an index (.sqlite) or a preprocess config (.yaml)."""
+    path = Path(archive_or_config)
+    if path.suffix in (".yaml", ".yml"):
+        with open(path) as f:
+            return Path(yaml.safe_load(f)["archive"]["index"])
+    return path
+
+
 def site_config(dataset, template=TEMPLATE, overrides=None) -> dict:
     """The preprocess config ``template`` pointed at ``dataset`` (its context.yaml), with the
     archive and plots in ``<dataset>/preprocess``. ``overrides``: {step name: {section: dict}}
@@ -54,10 +63,7 @@ def run_site_pipeline(config_path, nproc=1, extra_args=(), check=True):
     env = dict(os.environ)
     env.setdefault("OMP_WAIT_POLICY", "passive")
     env.setdefault("OMP_NUM_THREADS", "1")
-    import yaml
-
-    with open(config_path) as f:
-        archive_dir = Path(yaml.safe_load(f)["archive"]["index"]).parent
+    archive_dir = archive_index(config_path).parent
     archive_dir.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, "-m", "sotodlib.site_pipeline.preprocess_tod", str(config_path),
            "--nproc", str(nproc), "--verbosity", "1",

@@ -82,6 +82,12 @@ def wafer_pixels(gap: float = 0.0):
     return np.array(xs), np.array(ys), np.array(pols), np.array(rhombi)
 
 
+def pixel_pitch(wafer_slot: str) -> float:
+    """Pixel pitch of a wafer on the sky (radians): pixsize x platescale."""
+    hw = nominal_hardware().data
+    return hw["wafer_slots"][wafer_slot]["pixsize"] * hw["telescopes"]["LAT"]["platescale"] * DEG
+
+
 def tube_center(tube_slot: str):
     """(xi, eta) of a LAT tube's centre in radians."""
     hw = nominal_hardware().data
@@ -137,7 +143,7 @@ def wafer_detectors(tube_slot: str, wafer_slot: str):
         raise ValueError(f"wafer slot {wafer_slot!r} is not in tube {tube_slot!r}: "
                          f"{tube['wafer_slots']}")
     wprops = hw["wafer_slots"][wafer_slot]
-    pitch = wprops["pixsize"] * hw["telescopes"]["LAT"]["platescale"] * DEG
+    pitch = pixel_pitch(wafer_slot)
     slot_angle = tube["wafer_slot_angle"][tube["wafer_slots"].index(wafer_slot)] * DEG
     x, y, pol_a, _ = wafer_pixels(gap=wprops["rhombusgap"] / wprops["pixsize"])
     x, y = _rotate(x * pitch, y * pitch, slot_angle + PLANE_ROTATION)

@@ -139,7 +139,8 @@ def _draw_sources(config: SimConfig, blocks, all_dets):
     bands = sorted({b for d in all_dets.values() for b in d["bandpass"]})
     det_cat = {k: np.concatenate([d[k] for d in all_dets.values()])
                for k in ("xi", "eta", "det_id")}
-    pitch = 5.3 * 0.00495 * np.pi / 180
+    wafers = {w for d in all_dets.values() for w in d["wafer_slot"]}
+    pitch = min(focal_plane.pixel_pitch(w) for w in wafers)
     flare_rng = rng_for(config.seed, FLARES)
     n_per_block = np.bincount(flare_rng.integers(len(blocks), size=config.flares.n),
                               minlength=len(blocks))

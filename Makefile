@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed
 # OpenMP threads spin-wait on 2 cores (pyfftw, so3g): let idle threads sleep.
 export OMP_WAIT_POLICY ?= passive
 
-.PHONY: demo test clean install
+.PHONY: demo test bench clean install
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
@@ -21,6 +21,10 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest
+
+# Speed and memory of the detection chain against the FFT floor (prints a table; see README).
+bench: $(STAMP)
+	$(PY) benchmarks/bench_chain.py --json bench_chain.json
 
 clean:
 	rm -rf data out results .pytest_cache

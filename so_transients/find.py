@@ -29,6 +29,7 @@ class FindConfig:
     eps: float | None = None          # DBSCAN scale (radians); None: sigma_FWHM of the band
     dbscan_min_samples: int = 5       # DBSCAN core-point neighbourhood (scikit-learn default)
     min_cluster_samples: int = 11     # "more than 10 samples"
+    min_dets: int = 5                 # clusters on fewer detectors cannot pass the cuts
     max_candidates: int = 2000        # per group; the rest are dropped with a warning
 
 
@@ -100,7 +101,8 @@ def find_candidates(snr, timestamps, scan, directions, radec, eps, cfg: FindConf
             _tangent_plane(ra[sel], dec[sel])).labels_
         for label in np.unique(labels[labels >= 0]):
             members = sel[labels == label]
-            if len(members) < cfg.min_cluster_samples:
+            if (len(members) < cfg.min_cluster_samples
+                    or len(np.unique(dets[members])) < cfg.min_dets):
                 continue
             _add_candidate(cands, hits, members, k, directions[k], dets, samps, values, ra, dec,
                            timestamps)

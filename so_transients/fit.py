@@ -5,7 +5,9 @@ All samples of the group within ``window`` seconds of the candidate's median tim
 
     A(theta) = A0 B(theta - theta_src) + C
 
-on the amplitude timestream, by ``scipy.optimize.curve_fit``. Samples farther along the scan
+on the amplitude timestream, by a bounded Levenberg-Marquardt fit (:func:`levenberg_marquardt`:
+four parameters, so each step solves 4 x 4 normal equations instead of decomposing the
+Jacobian of every sample). Samples farther along the scan
 than the filter's response reaches (plus the allowed position shift) carry no beam signal and
 are left out. The fit works in focal-plane
 coordinates: over one second the sky position ``theta_src`` traces a known track across the
@@ -27,7 +29,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import curve_fit
 
 MAD_TO_SIGMA = 1.4826
 FIT_FIELDS = ("flux", "flux_err", "dxi", "deta", "dxi_err", "deta_err", "offset", "offset_err",
@@ -39,7 +40,8 @@ class FitConfig:
     window: float = 0.5          # s, half-width of the time window around the median time
     radius: float = np.radians(1.0)
     min_snr: float = 5.0         # keep A0 / sigma_A >= min_snr
-    cross_scan_sigma: float = 8.0  # detectors passing within this many beam sigmas are fitted
+    cross_scan_sigma: float = 6.0  # detectors passing within this many beam sigmas are fitted
+    #                               (the 3 sigma position range plus 3 sigma of beam)
     n_null: int = 200            # random positions used to measure the error scale
 
 
@@ -126,11 +128,10 @@ def fit_candidate(track: Track, det_xi, det_eta, amp, sigma_amp, inflation=1.0, 
 
     a_start, _ = linear_amplitude(model(None, 1.0, 0.0, 0.0, 0.0), y, s**-2)
     reach = 3 * track.sigma
-    try:
-        popt, pcov = curve_fit(model, None, y, p0=[max(a_start, 1e-3), 0.0, 0.0, 0.0], sigma=s,
-                               absolute_sigma=True, jac=jacobian,
-                               bounds=([0, -reach, -reach, -np.inf], [np.inf, reach, reach, np.inf]))
-    except (RuntimeError, ValueError):
+    popt, pcov = levenberg_marquardt(
+        model, jacobian, y, s, np.array([max(a_start, 1e-3), 0.0, 0.0, 0.0]),
+        lower=np.array([0.0, -reach, -reach, -np.inf]), upper=np.array([np.inf, reach, reach, np.inf]))
+    if popt is None:
         return out
     errors = np.sqrt(np.diag(pcov)) * inflation * error_scale
     resid = (y - model(None, *popt)) / s
@@ -140,6 +141,47 @@ def fit_candidate(track: Track, det_xi, det_eta, amp, sigma_amp, inflation=1.0, 
                chi2_red=float(np.sum(resid**2) / max(len(y) - 4, 1)),
                fit_ok=bool(np.all(np.isfinite(errors))))
     return out
+
+
+def levenberg_marquardt(model, jacobian, y, sigma, p0, lower, upper, max_iter=50,
+                        tol_chi2=1e-3):
+    """Weighted least squares of ``model(None, *p)`` to ``y`` with parameters kept in
+    ``[lower, upper]`` (clipped after each step). Stops when a step lowers chi^2 by less than
+    ``tol_chi2`` (absolute: a change of 1 moves a parameter by one sigma). Returns
+    ``(p, covariance)`` with the covariance ``(J^T W J)^-1`` at the solution, or
+    ``(None, None)`` if it is singular."""
+    w = sigma**-2
+    p = np.clip(np.asarray(p0, float), lower, upper)
+    resid = y - model(None, *p)
+    chi2 = np.sum(w * resid**2)
+    damping = 1e-3
+    for _ in range(max_iter):
+        jac = jacobian(None, *p)
+        alpha = jac.T @ (jac * w[:, None])
+        beta = jac.T @ (w * resid)
+        improved = converged = False
+        while damping < 1e10:
+            try:
+                step = np.linalg.solve(alpha + damping * np.diag(np.diag(alpha)), beta)
+            except np.linalg.LinAlgError:
+                damping *= 10
+                continue
+            trial = np.clip(p + step, lower, upper)
+            resid_trial = y - model(None, *trial)
+            chi2_trial = np.sum(w * resid_trial**2)
+            if chi2_trial <= chi2:
+                improved, converged = True, chi2 - chi2_trial < tol_chi2
+                p, resid, chi2, damping = trial, resid_trial, chi2_trial, max(damping / 10, 1e-12)
+                break
+            damping *= 10
+        if not improved or converged:
+            break
+    jac = jacobian(None, *p)
+    try:
+        cov = np.linalg.inv(jac.T @ (jac * w[:, None]))
+    except np.linalg.LinAlgError:
+        return None, None
+    return p, cov
 
 
 def null_scatter(tracks, det_xi, det_eta, amps, sigma_amp, inflation=1.0):

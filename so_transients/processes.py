@@ -15,6 +15,7 @@ candidates; :mod:`so_transients.results` turns them into tables.
 from __future__ import annotations
 
 import logging
+import warnings
 
 import numpy as np
 from scipy import ndimage
@@ -150,6 +151,13 @@ def drift_velocity(aman, ra, dec, times, half_span=0.05):
     return out
 
 
+def amplitude(aman, dets=slice(None), lo=None, hi=None):
+    """Amplitude timestream (signal units) of detectors ``dets``, samples ``lo:hi``: the S/N
+    of ``transient_filter`` times each detector's ``sigma_amp``."""
+    sigma = np.asarray(aman.transient_filter.sigma_amp, np.float32)[dets]
+    return np.asarray(aman.transient_snr[dets, lo:hi]) * sigma[:, None]
+
+
 def detector_pitch(xi, eta):
     """Median distance between neighbouring detector positions (radians)."""
     pos = np.unique(np.round(np.c_[xi, eta], 12), axis=0)
@@ -205,12 +213,14 @@ class TransientFilter(_Preprocess):
     """Matched-filter every detector for point-source crossings (paper eq. 2).
 
     ``process()`` computes, per detector, the S/N timestream ``aman.transient_snr`` (unit
-    variance, verified by measurement) and the amplitude timestream ``aman.transient_amp``
-    (signal units, mJy for point-source-calibrated data), plus ``aman.transient_filter``:
-    per-detector ``noise_level``, ``fknee``, ``sigma_amp``, ``snr_scale``, ``dead``,
-    ``sigma_t``, ``beam_sigma``, ``fit_inflation`` and the filter's response kernel
-    (``lag``, ``response``) used by ``transient_fit``. It runs again when the archive is loaded,
-    so these are always available. The template width is the beam sigma over the scan speed
+    variance, verified by measurement; zero where nothing may be detected), plus
+    ``aman.transient_filter``: per-detector ``noise_level``, ``fknee``, ``sigma_amp``,
+    ``snr_scale``, ``dead``, ``sigma_t``, ``beam_sigma``, ``fit_inflation`` and the filter's
+    response kernel (``lag``, ``response``) used by ``transient_fit``. The amplitude timestream
+    (signal units, mJy for point-source-calibrated data) is ``transient_snr * sigma_amp``;
+    :func:`amplitude` computes it for any block of detectors and samples, so the full array
+    never needs to be held. It runs again when the archive is loaded, so these are always
+    available. The template width is the beam sigma over the scan speed
     measured from the boresight. Samples flagged in the ``aman.flags`` fields listed in
     ``mask_flags`` (and non-finite ones) are ignored and can never be detected; do not list
     glitch flags there, since bright transients are flagged as glitches.
@@ -230,7 +240,8 @@ class TransientFilter(_Preprocess):
           edge_buffer: 5.0                # s without detections at each end
           mask_buffer: 0.2                # s around masked samples
           mask_flags: []                  # aman.flags fields to ignore (not glitches!)
-          workers: 1                      # FFT threads
+          workers: 1                      # threads filtering chunks of detectors
+          chunk_dets: 16                  # detectors per chunk (kept in cache)
         calc: true
         save: true
     """
@@ -267,11 +278,10 @@ class TransientFilter(_Preprocess):
         beam_sigma = fwhm_to_sigma(beam_fwhm(bands, self.fwhm_table, describe(aman)))
         sigma_t = beam_sigma / scan_speed(aman) if aman.dets.count else beam_sigma
         res = matched_filter(aman.signal, fs, sigma_t, self.filter_cfg, mask=self._mask(aman))
-        for name in ("transient_snr", "transient_amp", "transient_filter"):
+        for name in ("transient_snr", "transient_filter"):
             if name in aman._fields:
                 aman.move(name, None)
         aman.wrap("transient_snr", res.snr, [(0, "dets"), (1, "samps")])
-        aman.wrap("transient_amp", res.amplitude, [(0, "dets"), (1, "samps")])
         aman.wrap("transient_filter", self._summary(aman, res, fs, sigma_t, beam_sigma))
         return aman, proc_aman
 
@@ -322,7 +332,10 @@ class TransientFind(_Preprocess):
     still rings from the turnaround.
     DBSCAN clusters them per scan and band with
     ``eps = sigma_FWHM = FWHM / (2 sqrt(ln 2))`` unless ``eps_arcmin`` is given; clusters of more
-    than 10 samples become candidates (at most ``max_candidates`` per group, with a warning).
+    than 10 samples on at least ``min_dets`` detectors become candidates (at most
+    ``max_candidates`` per group, with a warning). Clusters on fewer detectors are almost all
+    noise (thousands per hour) and could never pass ``transient_cuts``' detector-count cut, so
+    they are not kept; set ``min_dets: 1`` to keep every cluster, as the paper's Table 1 counts.
 
     In ``aman`` (for the next steps): ``transient_candidates`` (axis ``transient_cand``) and
     ``transient_hits`` (axis ``transient_hit``: candidate, detector, sample, S/N, RA, Dec of
@@ -339,6 +352,7 @@ class TransientFind(_Preprocess):
           eps_arcmin: null                # null: sigma_FWHM of each band
           dbscan_min_samples: 5
           min_cluster_samples: 11         # clusters of more than 10 samples
+          min_dets: 5                     # ... on at least this many detectors
           max_candidates: 2000
           speed_tolerance: 0.1            # leave out samples scanning >10% off nominal speed
           turnaround_buffer: 2.0          # s left out around those samples
@@ -362,7 +376,10 @@ class TransientFind(_Preprocess):
             ta = aman.flags.turnarounds
         else:
             try:
-                ta, _, _ = tod_flags.get_turnaround_flags(aman, merge=False)
+                with warnings.catch_warnings():     # sotodlib warns on TODs shorter than a scan
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    ta, _, _ = tod_flags.get_turnaround_flags(aman, merge=False, merge_lr=False,
+                                                              merge_subscans=False)
             except (ValueError, IndexError):   # shorter than one scan: no turnaround to flag
                 ta = np.zeros(aman.samps.count, bool)
         in_ta = np.asarray(ta.mask() if hasattr(ta, "mask") else ta, bool)
@@ -520,7 +537,7 @@ class TransientFit(_Preprocess):
     ``radius_deg`` of its position, from detectors whose path passes within
     ``cross_scan_sigma`` beam sigmas of it (the others carry no beam signal), are fitted on the
     amplitude timestream with
-    ``scipy.optimize.curve_fit`` (see :mod:`so_transients.fit`); a candidate is a detection when
+    a bounded Levenberg-Marquardt fit (see :mod:`so_transients.fit`); a candidate is a detection when
     ``A0 / sigma_A >= min_snr``. Errors are scaled by ``error_scale``, the measured spread of
     the same fit at ``n_null`` random positions away from candidates (residual atmosphere is
     correlated between neighbouring detectors, so the naive covariance is too small).
@@ -543,7 +560,7 @@ class TransientFit(_Preprocess):
           window: 0.5                     # s around the median time
           radius_deg: 1.0
           min_snr: 5.0
-          cross_scan_sigma: 8.0           # detectors passing within this many beam sigmas
+          cross_scan_sigma: 6.0           # detectors passing within this many beam sigmas
           n_null: 200                     # random positions measuring the error scale
           seed: 0                         # for the random null positions
         save: true
@@ -560,7 +577,7 @@ class TransientFit(_Preprocess):
         self.fit_cfg = FitConfig(radius=np.radians(radius), **cfg)
 
     def calc_and_save(self, aman, proc_aman):
-        require(aman, self.name, "transient_candidates", "transient_amp", "transient_filter")
+        require(aman, self.name, "transient_candidates", "transient_snr", "transient_filter")
         cands = _table_from_aman(aman.transient_candidates, CAND_AXIS)
         n = len(cands["scan"])
         passed = cands.get("passed", np.ones(n, bool)).astype(bool)
@@ -615,7 +632,7 @@ class TransientFit(_Preprocess):
         across = -(xi[dets] - track.xi[mid]) * track.along[1] + (eta[dets] - track.eta[mid]) * track.along[0]
         dets = dets[near & (np.abs(across) <= self.fit_cfg.cross_scan_sigma * sigma)]
         track.sigma = sigma
-        res = fit_candidate(track, xi[dets], eta[dets], aman.transient_amp[dets, lo:hi],
+        res = fit_candidate(track, xi[dets], eta[dets], amplitude(aman, dets, lo, hi),
                             np.asarray(summary.sigma_amp)[dets],
                             float(np.median(np.asarray(summary.fit_inflation))), error_scale)
         res["error_scale"] = error_scale
@@ -662,7 +679,7 @@ class TransientFit(_Preprocess):
             _, track = self._track(aman, ra[k], dec[k], lo, hi)
             track.sigma = sigma
             tracks.append(track)
-            amps.append(aman.transient_amp[dets, lo:hi])
+            amps.append(amplitude(aman, dets, lo, hi))
         return null_scatter(tracks, xi, eta, amps, np.asarray(summary.sigma_amp)[dets],
                             float(np.median(np.asarray(summary.fit_inflation))))
 

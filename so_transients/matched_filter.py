@@ -81,6 +81,9 @@ class FilterResult:
     median_psd: np.ndarray = field(default=None)   # median smoothed PSD (|X|^2 units)
     freqs: np.ndarray = field(default=None)
     nfft: int = 0
+    psd_bins: np.ndarray = field(default=None)     # (ndet, nbins) binned PSD each row used
+    psd_edges: np.ndarray = field(default=None)    # rfft indices of the bins' edges
+    snr_factor: np.ndarray = field(default=None)   # S/N = filtered signal x snr_factor
 
     @property
     def valid(self):
@@ -276,6 +279,8 @@ class _Chunk:
 
     sl: slice
     fknee: np.ndarray
+    snr_factor: np.ndarray
+    psd_all: np.ndarray
     sigma_amp: np.ndarray
     snr_scale: np.ndarray
     noise_level: np.ndarray
@@ -325,6 +330,7 @@ def _filter_rows(sp, x, bad_rows, sigma_t, out_snr, psd=None, white=None):
         out_snr[i, row] = 0.0
         peak[i] = np.abs(out_snr[i]).max()
     return dict(psd=psd, white=white, dead=dead, fknee=fknee, scale=scale, n_eff=n_eff,
+                snr_factor=factor,
                 sigma_amp=np.where(dead, 0.0, sigma_y * scale / norm)), peak
 
 
@@ -369,7 +375,8 @@ def _filter_chunk(sp, signal, mask, sigma_t, sl, out_snr):
         for key, value in again.items():
             res[key][bright] = value
     dead = res["dead"]
-    return _Chunk(sl, res["fknee"], res["sigma_amp"], np.where(dead, np.nan, res["scale"]),
+    return _Chunk(sl, res["fknee"], res["snr_factor"], res["psd"].astype(np.float32),
+                  res["sigma_amp"], np.where(dead, np.nan, res["scale"]),
                   np.where(dead, 0.0, np.sqrt(res["white"] / sp.nsamp)), dead,
                   res["psd"][~dead])
 
@@ -406,7 +413,8 @@ def matched_filter(signal, sample_rate, sigma_t, cfg: FilterConfig = FilterConfi
     return FilterResult(snr=snr, noise_level=gather("noise_level"), fknee=gather("fknee"),
                         sigma_amp=gather("sigma_amp"), snr_scale=gather("snr_scale"),
                         dead=gather("dead").astype(bool), median_psd=median, freqs=sp.freqs,
-                        nfft=sp.nfft)
+                        nfft=sp.nfft, psd_bins=gather("psd_all"), psd_edges=sp.edges,
+                        snr_factor=gather("snr_factor"))
 
 
 def filter_kernels(nfft, sample_rate, sigma_t, fknee, psd, order=4, max_lag=1.0):

@@ -30,7 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-MAD_TO_SIGMA = 1.4826
+from .matched_filter import mad_std
+
 FIT_FIELDS = ("flux", "flux_err", "dxi", "deta", "dxi_err", "deta_err", "offset", "offset_err",
               "snr_fit", "chi2_red", "n_fit_samples", "n_fit_dets", "fit_ok")
 
@@ -200,5 +201,4 @@ def null_scatter(tracks, det_xi, det_eta, amps, sigma_amp, inflation=1.0):
             ratios.append(a / (err * inflation))
     if len(ratios) < 10:
         return 1.0
-    ratios = np.asarray(ratios)
-    return float(MAD_TO_SIGMA * np.median(np.abs(ratios - np.median(ratios))))
+    return float(mad_std(ratios))

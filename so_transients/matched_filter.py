@@ -32,7 +32,6 @@ the bright samples are interpolated over; this costs three more FFTs for those d
 """
 from __future__ import annotations
 
-import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -152,14 +151,12 @@ def _fill_bad(x, bad):
     spectral_ops.interpolate_runs(x, np.ascontiguousarray(bad))
 
 
-def robust_std(x, valid, stride=7):
-    """1.4826 x median absolute deviation of the valid samples of each row (subsampled)."""
-    out = np.full(len(x), np.nan)
-    for i in range(len(x)):
-        v = x[i, ::stride][valid[i, ::stride]]
-        if v.size > 10:
-            out[i] = MAD_TO_SIGMA * np.median(np.abs(v - np.median(v)))
-    return out
+def mad_std(x, axis=-1):
+    """1.4826 x median absolute deviation along ``axis``: the standard deviation of Gaussian
+    noise, insensitive to a few outliers (sources)."""
+    x = np.asarray(x)
+    med = np.median(x, axis=axis, keepdims=True)
+    return MAD_TO_SIGMA * np.median(np.abs(x - med), axis=axis)
 
 
 def _grow(bad, n):
@@ -264,12 +261,10 @@ class _Spectral:
         stride = max(7, (n1 - n0) // 10000)
         idx = np.arange(n0, n1, stride)
         values = y[:, idx]
-        med = np.median(values, axis=1)
-        out = MAD_TO_SIGMA * np.median(np.abs(values - med[:, None]), axis=1).astype(float)
+        out = mad_std(values, axis=1).astype(float)
         for i, row in grown.items():
             good = values[i][~row[idx]]
-            out[i] = (MAD_TO_SIGMA * np.median(np.abs(good - np.median(good)))
-                      if good.size > 10 else np.nan)
+            out[i] = mad_std(good) if good.size > 10 else np.nan
         return out
 
 
@@ -297,10 +292,10 @@ def _prepare(sp, signal_rows, mask_rows):
     bad = None
     if not np.isfinite(x.sum(axis=1)).all():
         bad = ~np.isfinite(x)
+        x[bad] = 0.0
     if mask_rows is not None and np.any(mask_rows):
         bad = np.asarray(mask_rows, bool) | (bad if bad is not None else False)
     if bad is not None:
-        x[~np.isfinite(x)] = 0.0
         _fill_bad(x, bad)
     return buffer, bad
 
@@ -341,7 +336,7 @@ def _source_masked_psd(sp, x, snr, sigma_t):
     changes neither the S/N nor the amplitude, only the white level)."""
     width = int(np.ceil(2 * np.max(sigma_t) * sp.sample_rate))
     masked = _grow(np.abs(snr) > sp.cfg.source_mask_snr, width)
-    xm = x.copy()
+    xm = x.copy()          # the caller refilters x itself
     _fill_bad(xm[:, :sp.nsamp], masked)
     _, psd, white = sp.spectrum(xm)
     kept = np.clip(1.0 - masked.mean(axis=1), 0.5, 1.0)
@@ -366,11 +361,11 @@ def _filter_chunk(sp, signal, mask, sigma_t, sl, out_snr):
     bright = (np.flatnonzero((peak**2 / res["n_eff"] > cfg.bright_bias) & ~res["dead"])
               if cfg.bright_bias is not None else [])
     if len(bright):
-        psd_m, white_m = _source_masked_psd(sp, x[bright], snr[bright], sigma_t[sl][bright])
+        rows, row_sigma_t = x[bright], sigma_t[sl][bright]
+        psd_m, white_m = _source_masked_psd(sp, rows, snr[bright], row_sigma_t)
         sub_bad = {j: bad_rows[i] for j, i in enumerate(bright) if i in bad_rows}
         sub_snr = np.empty((len(bright), sp.nsamp), np.float32)
-        again, _ = _filter_rows(sp, x[bright], sub_bad, sigma_t[sl][bright], sub_snr,
-                                psd_m, white_m)
+        again, _ = _filter_rows(sp, rows, sub_bad, row_sigma_t, sub_snr, psd_m, white_m)
         snr[bright] = sub_snr
         for key, value in again.items():
             res[key][bright] = value

@@ -91,6 +91,12 @@ def bandpasses(aman, field):
     return np.asarray(node).astype(str)
 
 
+def fwhm_table(cfg):
+    """Beam FWHM per band (arcmin): the nominal ones updated by the config's
+    ``beam_fwhm_arcmin``, which is taken out of ``cfg``."""
+    return {**DEFAULT_FWHM_ARCMIN, **cfg.pop("beam_fwhm_arcmin", {})}
+
+
 def beam_fwhm(bands, table_arcmin, where):
     unknown = sorted(set(bands) - set(table_arcmin))
     if unknown:
@@ -252,7 +258,7 @@ class TransientFilter(_Preprocess):
         super().__init__(step_cfgs)
         cfg = dict(self.process_cfgs or {})
         self.bandpass_field = cfg.pop("bandpass_field", "bandpass")
-        self.fwhm_table = {**DEFAULT_FWHM_ARCMIN, **cfg.pop("beam_fwhm_arcmin", {})}
+        self.fwhm_table = fwhm_table(cfg)
         self.mask_flags = list(cfg.pop("mask_flags", []))
         highpass = cfg.pop("highpass", 1.23)
         cfg["highpass"] = None if highpass == "fit" else float(highpass)
@@ -365,7 +371,7 @@ class TransientFind(_Preprocess):
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
         cfg = _catalog_step_config(self)
-        self.fwhm_table = {**DEFAULT_FWHM_ARCMIN, **cfg.pop("beam_fwhm_arcmin", {})}
+        self.fwhm_table = fwhm_table(cfg)
         self.speed_tolerance = float(cfg.pop("speed_tolerance", 0.1))
         self.turnaround_buffer = float(cfg.pop("turnaround_buffer", 2.0))
         eps = cfg.pop("eps_arcmin", None)
@@ -486,7 +492,7 @@ class TransientCuts(_Preprocess):
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
         cfg = _catalog_step_config(self)
-        self.fwhm_table = {**DEFAULT_FWHM_ARCMIN, **cfg.pop("beam_fwhm_arcmin", {})}
+        self.fwhm_table = fwhm_table(cfg)
         radius = cfg.pop("mask_radius_arcmin", None)
         self.cuts_cfg = CutsConfig(mask_radius=None if radius is None else radius * ARCMIN, **cfg)
         self.known = (read_catalog(self.cuts_cfg.catalog, self.cuts_cfg.catalog_unit)

@@ -6,6 +6,7 @@ Subcommands:
 * ``summary CONTEXT``: describe a dataset as loaded through its context.yaml;
 * ``site-config DATASET``: the transient site preprocess config pointed at a dataset;
 * ``catalog ARCHIVE_OR_CONFIG -o FILE``: every group's detections in one table (ECSV/FITS);
+* ``campaign CONFIG``: an injection-recovery campaign (efficiency, thresholds, false positives);
 * ``demo``: the main job on built-in default data (``make demo``).
 """
 from __future__ import annotations
@@ -63,6 +64,25 @@ def _demo(args):
     print(run_demo(result.context.parent, nproc=args.nproc))
 
 
+def _campaign(args):
+    from .campaign.config import load_campaign
+    from .campaign.run import executor, run_campaign
+
+    cfg = load_campaign(args.config, {"output": args.out, "nproc": args.nproc})
+    pool, as_completed = executor(cfg.nproc)
+    if pool is None and cfg.nproc > 1:
+        return          # an MPI worker rank: it served units until rank 0 finished
+    t0 = time.time()
+    try:
+        folder = run_campaign(cfg, restart=args.restart, progress=not args.quiet, pool=pool,
+                              as_completed=as_completed)
+    finally:
+        if pool is not None:
+            pool.shutdown()
+    print((folder / "thresholds.md").read_text())
+    print(f"Campaign done in {time.time() - t0:.0f} s; results in {folder}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="so-transients", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
@@ -91,6 +111,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--all", action="store_true",
                    help="every candidate with its cut reason, not only detections")
     p.set_defaults(func=_catalog)
+
+    p = sub.add_parser("campaign", help="injection-recovery campaign: efficiencies, detection "
+                                        "thresholds, flux/pointing recovery, false positives")
+    p.add_argument("config", help="campaign YAML (e.g. configs/campaign_quick.yaml)")
+    p.add_argument("-o", "--out", help="output folder (default: the config's `output`)")
+    p.add_argument("--nproc", type=int, help="worker processes (default: the config's)")
+    p.add_argument("--restart", action="store_true",
+                   help="discard units of a different config in the output folder")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_campaign)
 
     p = sub.add_parser("demo", help="simulate the default observation, run the site pipeline "
                                     "and compare detections with the injected flares")

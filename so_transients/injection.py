@@ -17,7 +17,7 @@ sampled Gaussian, exact for templates wider than a sample.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.fft
@@ -37,6 +37,7 @@ class NoiseModel:
     sigma_t: np.ndarray          # (ndet,) template width, s
     snr_factor: np.ndarray       # (ndet,) S/N per unit filter output
     order: int = 4
+    _responses: dict = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
     def from_filter(cls, result: FilterResult, sample_rate, sigma_t, order=4):
@@ -45,6 +46,19 @@ class NoiseModel:
                    np.asarray(result.psd_bins, float), np.asarray(result.fknee, float),
                    np.broadcast_to(np.asarray(sigma_t, float), (ndet,)).copy(),
                    np.asarray(result.snr_factor, float), order)
+
+    @classmethod
+    def from_aman(cls, aman):
+        """The noise model ``transient_filter`` left in ``aman.transient_filter``."""
+        summary = aman.transient_filter
+        if "psd_bins" not in summary._fields:
+            raise ValueError("aman.transient_filter holds no noise model (psd_bins): run "
+                             "transient_filter's process() on this aman first")
+        t = np.asarray(aman.timestamps)
+        return cls(1.0 / float(np.median(np.diff(t))), int(summary.nfft),
+                   np.asarray(summary.psd_edges), np.asarray(summary.psd_bins, float),
+                   np.asarray(summary.fknee, float), np.asarray(summary.sigma_t, float),
+                   np.asarray(summary.snr_factor, float), int(summary.order))
 
     def gain(self, dets, freqs):
         """Filter response (dets, nf) at ``freqs`` (Hz): high-pass x template / PSD."""
@@ -55,18 +69,32 @@ class NoiseModel:
         template = (self.sample_rate * sigma * np.sqrt(2 * np.pi)
                     * np.exp(-2 * (np.pi * freqs[None, :] * sigma) ** 2))
         hp = butterworth_highpass(freqs, self.fknee[dets], self.order)
-        out = hp * template / self.psd_bins[dets][:, bins]
+        psd = self.psd_bins[dets][:, bins]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out = np.where(psd > 0, hp * template / psd, 0.0)   # dead detectors: no response
         out[:, freqs == 0] = 0.0
         return out
 
 
+    def snr_response(self, n):
+        """S/N per unit input in Fourier space, (ndet, n // 2 + 1), for real FFTs of length
+        ``n``: the gain times each detector's S/N factor. Cached per ``n``."""
+        if n not in self._responses:
+            freqs = scipy.fft.rfftfreq(n, 1.0 / self.sample_rate)
+            every = np.arange(len(self.fknee))
+            self._responses[n] = (self.gain(every, freqs)
+                                  * self.snr_factor[:, None]).astype(np.float32)
+        return self._responses[n]
+
+
 def filtered_snr(model: NoiseModel, dets, signal, pad=10.0):
     """S/N timestream (len(dets), m) that the noise model's filter makes of ``signal``
-    (len(dets), m), a window of injected signal only, zero-padded by ``pad`` seconds."""
-    signal = np.asarray(signal, float)
+    (len(dets), m), a window of injected signal only, zero-padded by at least ``pad`` seconds
+    (FFT lengths are powers of two, so that few responses need computing)."""
+    signal = np.asarray(signal, np.float32)
     dets = np.asarray(dets, int)
     m = signal.shape[1]
-    n = scipy.fft.next_fast_len(m + 2 * int(np.ceil(pad * model.sample_rate)), real=True)
-    freqs = scipy.fft.rfftfreq(n, 1.0 / model.sample_rate)
-    spec = scipy.fft.rfft(signal, n=n, axis=1) * model.gain(dets, freqs)
-    return scipy.fft.irfft(spec, n=n, axis=1)[:, :m] * model.snr_factor[dets][:, None]
+    n = 1 << int(np.ceil(np.log2(m + 2 * int(np.ceil(pad * model.sample_rate)))))
+    spec = scipy.fft.rfft(signal, n=n, axis=1)
+    spec *= model.snr_response(n)[dets]
+    return scipy.fft.irfft(spec, n=n, axis=1)[:, :m]

@@ -36,7 +36,10 @@ def crossing_times(timestamps, bore_q, det_xi, det_eta, flare, fwhm, min_gap=2.0
     near = np.flatnonzero(np.hypot(xi - centre[0], eta - centre[1]) < radius)
     if not len(near):
         return np.zeros(0)
-    dist = np.array([angular_distance_xieta(det_xi, det_eta, xi[k], eta[k]).min() for k in near])
+    dist = np.zeros(len(near))
+    for part in np.array_split(np.arange(len(near)), max(1, len(near) // 256)):
+        dist[part] = angular_distance_xieta(det_xi[:, None], det_eta[:, None], xi[near[part]][None],
+                                            eta[near[part]][None]).min(axis=0)
     close = near[dist < fwhm]
     if not len(close):
         return np.zeros(0)

@@ -36,6 +36,8 @@ DEFAULT_FWHM_ARCMIN = {b: get_band(b).fwhm / ARCMIN for b in HARDWARE_BAND_KEY}
 LAG_AXIS = "transient_lag"
 CAND_AXIS = "transient_cand"
 HIT_AXIS = "transient_hit"
+PSD_BIN_AXIS = "transient_psd_bin"
+PSD_EDGE_AXIS = "transient_psd_edge"
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -119,6 +121,13 @@ def scan_speed(aman):
     if not len(moving) or np.median(moving) <= 0:
         raise ValueError(f"{describe(aman)}: the boresight does not scan")
     return float(np.median(moving))
+
+
+def boresight_mask(flag):
+    """Boolean (samps,) mask of a boresight flag: Ranges, RangesMatrix or array (for
+    per-detector flags, the first detector's, since they are the same for all)."""
+    mask = np.asarray(flag.mask() if hasattr(flag, "mask") else flag, bool)
+    return mask[0] if mask.ndim == 2 else mask
 
 
 BORE_Q = "transient_bore_q"
@@ -221,8 +230,10 @@ class TransientFilter(_Preprocess):
     ``process()`` computes, per detector, the S/N timestream ``aman.transient_snr`` (unit
     variance, verified by measurement; zero where nothing may be detected), plus
     ``aman.transient_filter``: per-detector ``noise_level``, ``fknee``, ``sigma_amp``,
-    ``snr_scale``, ``dead``, ``sigma_t``, ``beam_sigma``, ``fit_inflation`` and the filter's
-    response kernel (``lag``, ``response``) used by ``transient_fit``. The amplitude timestream
+    ``snr_scale``, ``dead``, ``sigma_t``, ``beam_sigma``, ``fit_inflation``, the filter's
+    response kernel (``lag``, ``response``) used by ``transient_fit``, and its noise weighting
+    (``psd_bins``, ``psd_edges``, ``snr_factor``, ``nfft``, ``order``) from which
+    :meth:`so_transients.injection.NoiseModel.from_aman` filters injected signals. The amplitude timestream
     (signal units, mJy for point-source-calibrated data) is ``transient_snr * sigma_amp``;
     :func:`amplitude` computes it for any block of detectors and samples, so the full array
     never needs to be held. It runs again when the archive is loaded, so these are always
@@ -300,6 +311,14 @@ class TransientFilter(_Preprocess):
         out.add_axis(core.IndexAxis(LAG_AXIS, len(lags)))
         out.wrap("lag", lags, [(0, LAG_AXIS)])
         out.wrap("response", response, [(0, LAG_AXIS)])
+        if res.psd_bins is not None and len(res.psd_bins):   # the noise model (injection)
+            out.add_axis(core.IndexAxis(PSD_EDGE_AXIS, len(res.psd_edges)))
+            out.add_axis(core.IndexAxis(PSD_BIN_AXIS, res.psd_bins.shape[1]))
+            out.wrap("psd_edges", np.asarray(res.psd_edges), [(0, PSD_EDGE_AXIS)])
+            out.wrap("psd_bins", np.asarray(res.psd_bins), [(0, "dets"), (1, PSD_BIN_AXIS)])
+            out.wrap("snr_factor", np.asarray(res.snr_factor), [(0, "dets")])
+            out.wrap("nfft", int(res.nfft))
+            out.wrap("order", int(self.filter_cfg.order))
         return out
 
     def _kernels(self, res, fs, sigma_t):
@@ -388,9 +407,7 @@ class TransientFind(_Preprocess):
                                                               merge_subscans=False)
             except (ValueError, IndexError):   # shorter than one scan: no turnaround to flag
                 ta = np.zeros(aman.samps.count, bool)
-        in_ta = np.asarray(ta.mask() if hasattr(ta, "mask") else ta, bool)
-        if in_ta.ndim == 2:     # per-detector flags: the boresight's are the same for all
-            in_ta = in_ta[0]
+        in_ta = boresight_mask(ta)
         # the template assumes the nominal scan speed: leave out samples far from it
         in_ta = in_ta | (np.abs(sample_speed(aman) / scan_speed(aman) - 1) > self.speed_tolerance)
         # the high-pass rings for ~1/f_hp after the kink a turnaround leaves in the atmosphere
@@ -546,7 +563,8 @@ class TransientFit(_Preprocess):
     a bounded Levenberg-Marquardt fit (see :mod:`so_transients.fit`); a candidate is a detection when
     ``A0 / sigma_A >= min_snr``. Errors are scaled by ``error_scale``, the measured spread of
     the same fit at ``n_null`` random positions away from candidates (residual atmosphere is
-    correlated between neighbouring detectors, so the naive covariance is too small).
+    correlated between neighbouring detectors, so the naive covariance is too small), unless
+    a fixed ``error_scale`` is configured (injection campaigns fix it from the noise-only data).
 
     In ``aman.transient_candidates`` and saved to the archive as ``proc_aman.transient_fit``
     (a catalogue on the detector axis keyed by ``cand_id``): ``flux``, ``flux_err`` (signal
@@ -569,6 +587,7 @@ class TransientFit(_Preprocess):
           cross_scan_sigma: 6.0           # detectors passing within this many beam sigmas
           n_null: 200                     # random positions measuring the error scale
           seed: 0                         # for the random null positions
+          error_scale: null               # fixed scale (null: measured on this group)
         save: true
         plot: true
     """
@@ -579,6 +598,8 @@ class TransientFit(_Preprocess):
         super().__init__(step_cfgs)
         cfg = _catalog_step_config(self)
         self.seed = int(cfg.pop("seed", 0))
+        scale = cfg.pop("error_scale", None)
+        self.fixed_error_scale = None if scale is None else float(scale)
         radius = cfg.pop("radius_deg", 1.0)
         self.fit_cfg = FitConfig(radius=np.radians(radius), **cfg)
 
@@ -590,7 +611,8 @@ class TransientFit(_Preprocess):
         bands = bandpasses(aman, self.bandpass_field)
         # nulls avoid only possible sources (candidates that passed the cuts): avoiding every
         # candidate would leave only the quietest stretches and bias the scale low
-        scales = {b: self._error_scale(aman, np.flatnonzero(bands == b), cands["t_median"][passed])
+        scales = {b: self.fixed_error_scale or self.error_scale(
+                      aman, np.flatnonzero(bands == b), cands["t_median"][passed])
                   for b in np.unique(cands["bandpass"][passed])}
         rows = [self._fit_one(aman, cands, c, np.flatnonzero(bands == cands["bandpass"][c]),
                               scales[cands["bandpass"][c]]) if passed[c] else {}
@@ -661,8 +683,9 @@ class TransientFit(_Preprocess):
         return dict(ra=float(ra[0]), dec=float(dec[0]), ra_err=float(np.sqrt(cov_sky[0, 0])),
                     dec_err=float(np.sqrt(cov_sky[1, 1])))
 
-    def _error_scale(self, aman, band_dets, cand_times):
-        """Measured spread of the fitted amplitude at random positions away from candidates."""
+    def error_scale(self, aman, band_dets, cand_times):
+        """Measured spread of the fitted amplitude at ``n_null`` random positions of detectors
+        ``band_dets``, more than 2 s from ``cand_times``."""
         summary = aman.transient_filter
         dets = band_dets[~np.asarray(summary.dead)[band_dets]]
         t = np.asarray(aman.timestamps)

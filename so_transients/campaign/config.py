@@ -1,0 +1,174 @@
+"""Injection-recovery campaign configuration: a YAML file read into a validated dataclass.
+
+A campaign names a noise-only simulation (the ``simulation`` section, the schema of
+``so-transients simulate`` without flares), the site preprocess config whose steps run on it,
+and a grid of bands x rise times x peak fluxes with ``n_flares`` flares per cell. See
+``configs/campaign_quick.yaml`` for the documented full set.
+
+The config's hash (:meth:`CampaignConfig.digest`) labels everything the campaign writes, so a
+resumed run never mixes results of different configs.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from ..bands import WHITE_NOISE_MJY
+from ..sim.config import SimConfig
+from ..site import TEMPLATE
+
+#: Rise times of the paper's grid (section 5.1), seconds.
+PAPER_RISE_TIMES = (0.5, 1.0, 2.5, 5.0, 15.0, 30.0, 150.0, 300.0)
+
+
+def flux_grid(spec) -> list:
+    """Peak fluxes (mJy) from a list, or from ``[{start, stop, step}, ...]`` ranges (inclusive)."""
+    values = []
+    for item in spec if isinstance(spec, list) else [spec]:
+        if isinstance(item, dict):
+            unknown = set(item) - {"start", "stop", "step"}
+            if unknown or item.get("step", 0) <= 0:
+                raise ValueError(f"a flux range needs start, stop and a positive step: {item}")
+            n = int(np.floor((item["stop"] - item["start"]) / item["step"] + 1e-9)) + 1
+            values += list(item["start"] + item["step"] * np.arange(n))
+        else:
+            values.append(item)
+    values = sorted({float(v) for v in values})
+    if not values or values[0] <= 0:
+        raise ValueError(f"peak fluxes must be positive, got {spec}")
+    return values
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One grid cell: band, rise time (= decay time, s) and peak flux (mJy)."""
+
+    band: str
+    t_rise: float
+    s_peak: float
+
+    @property
+    def label(self) -> str:
+        return f"{self.band}_tr{self.t_rise:g}_sp{self.s_peak:g}"
+
+
+@dataclass
+class Matching:
+    max_dt: float = 0.5              # s, to a moment the group crossed the flaring source
+    max_offset_arcmin: float = 0.5
+
+
+@dataclass
+class Injection:
+    window_pad: float = 3.0          # s of data kept on each side of a crossing
+    filter_pad: float = 10.0         # s of zero padding when filtering the injected signal
+    strip_sigma: float = 10.0        # detectors within this many beam sigmas of the track
+    min_expected_snr: float = 1.0    # skip crossings whose best detector expects less S/N
+    max_crossings: int | None = None  # per flare and group, brightest first (None: all)
+
+
+@dataclass
+class FullCheck:
+    """Cells re-run through the full site pipeline (flares injected in the TOD) to compare."""
+
+    cells: list = field(default_factory=list)   # [{band, t_rise, s_peak_mjy}, ...]
+    n_flares: int = 30
+    separation: float = 20.0         # s between one flare's end and the next one's start
+
+
+@dataclass
+class CampaignConfig:
+    output: str = "data/campaign"
+    seed: int = 0
+    nproc: int = 2                   # worker processes (or MPI ranks) for the injections
+    n_flares: int = 100              # flares per cell and band
+    simulation: dict = field(default_factory=dict)
+    preprocess: str = str(TEMPLATE)
+    preprocess_overrides: dict = field(default_factory=dict)
+    grid: dict = field(default_factory=dict)    # band -> {t_rise: [...], s_peak_mjy: [...]}
+    matching: Matching = field(default_factory=Matching)
+    injection: Injection = field(default_factory=Injection)
+    full_check: FullCheck = field(default_factory=FullCheck)
+    inverted: bool = True            # also count false positives on sign-inverted data
+
+    def __post_init__(self):
+        self.sim = SimConfig.from_dict({"seed": self.seed, **self.simulation})
+        if self.sim.flares.n or self.sim.flares.list:
+            raise ValueError("campaign simulation: leave out flares; the campaign injects them")
+        if not self.grid:
+            raise ValueError("campaign: the grid names no band")
+        self.cells = []
+        for band, spec in self.grid.items():
+            if band not in WHITE_NOISE_MJY:
+                raise ValueError(f"campaign grid: unknown band {band!r}")
+            unknown = set(spec) - {"t_rise", "s_peak_mjy"}
+            if unknown:
+                raise ValueError(f"campaign grid {band}: unknown keys {sorted(unknown)}")
+            rises = [float(t) for t in spec.get("t_rise", PAPER_RISE_TIMES)]
+            if min(rises) <= 0:
+                raise ValueError(f"campaign grid {band}: rise times must be positive")
+            self.cells += [Cell(band, t, s) for t in rises for s in flux_grid(spec["s_peak_mjy"])]
+        if self.n_flares < 1 or self.nproc < 1:
+            raise ValueError("campaign: n_flares and nproc must be >= 1")
+        if not Path(self.preprocess).exists():
+            raise FileNotFoundError(f"campaign preprocess config {self.preprocess} not found")
+
+    @property
+    def bands(self) -> list:
+        return sorted(self.grid)
+
+    @property
+    def check_cells(self) -> list:
+        return [Cell(c["band"], float(c["t_rise"]), float(c["s_peak_mjy"]))
+                for c in self.full_check.cells]
+
+    def digest(self) -> str:
+        """Hash of everything that changes results (not the output folder or process count)."""
+        data = dataclasses.asdict(self)
+        data.pop("output")
+        data.pop("nproc")
+        with open(self.preprocess) as f:
+            data["preprocess"] = yaml.safe_load(f)["process_pipe"]
+        text = json.dumps(data, sort_keys=True, default=str)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def noise_digest(self) -> str:
+        """Hash of what the noise-only observations depend on (simulation and preprocessing)."""
+        with open(self.preprocess) as f:
+            pipe = yaml.safe_load(f)["process_pipe"]
+        text = json.dumps([self.simulation, self.seed, pipe, self.preprocess_overrides],
+                          sort_keys=True, default=str)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+SECTIONS = {"matching": Matching, "injection": Injection, "full_check": FullCheck}
+
+
+def load_campaign(path, overrides: dict | None = None) -> CampaignConfig:
+    """Read a campaign YAML; unknown keys are errors. Relative ``preprocess`` paths are taken
+    from the repository root when they do not exist relative to the working directory."""
+    with open(path) as f:
+        data = yaml.safe_load(f) or {}
+    data.update({k: v for k, v in (overrides or {}).items() if v is not None})
+    known = {f.name for f in dataclasses.fields(CampaignConfig)}
+    unknown = set(data) - known
+    if unknown:
+        raise ValueError(f"unknown campaign config keys: {sorted(unknown)}; known: {sorted(known)}")
+    for name, klass in SECTIONS.items():
+        if name in data:
+            section = dict(data[name] or {})
+            bad = set(section) - {f.name for f in dataclasses.fields(klass)}
+            if bad:
+                raise ValueError(f"unknown keys in campaign section {name!r}: {sorted(bad)}")
+            data[name] = klass(**section)
+    if "preprocess" in data and not Path(data["preprocess"]).exists():
+        candidate = TEMPLATE.parent.parent / data["preprocess"]
+        if candidate.exists():
+            data["preprocess"] = str(candidate)
+    return CampaignConfig(**data)

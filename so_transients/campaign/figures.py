@@ -1,0 +1,98 @@
+"""The campaign's figures, like the reference paper's (its figures 7-10).
+
+* ``efficiency.png``: efficiency vs S_p per band, one line per t_r with 68 % intervals, the
+  10 / 50 / 90 % levels as guides and the per-sample noise rms of the band marked;
+* ``flux_residuals.png``: fractional (fitted - injected) / injected flux vs S_p per band
+  (injected flux at the detection's time), medians per t_r;
+* ``pointing.png``: distribution of fitted-position offsets per band, FWHM and sigma marked.
+"""
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from ..bands import ARCMIN, fwhm_to_sigma, get_band  # noqa: E402
+from .stats import LEVELS  # noqa: E402
+
+
+def _panels(bands):
+    n = max(len(bands), 1)
+    fig, axes = plt.subplots(1, n, figsize=(5.2 * n, 4.2), squeeze=False)
+    return fig, axes[0]
+
+
+def plot_efficiency(path, eff, noise_rms):
+    bands = sorted(set(eff["band"]))
+    fig, axes = _panels(bands)
+    for ax, band in zip(axes, bands):
+        mine = eff[eff["band"] == band]
+        rises = sorted(set(mine["t_rise"]))
+        colors = plt.cm.viridis(np.linspace(0, 0.9, len(rises)))
+        for t_rise, color in zip(rises, colors):
+            row = mine[mine["t_rise"] == t_rise]
+            row.sort("s_peak")
+            e = np.asarray(row["efficiency"])
+            ax.errorbar(row["s_peak"], e, yerr=[e - row["eff_lo"], row["eff_hi"] - e],
+                        color=color, marker="o", ms=3, capsize=2, label=f"$t_r$ = {t_rise:g} s")
+        for level in LEVELS:
+            ax.axhline(level, color="0.6", ls=":", lw=0.8)
+        if band in noise_rms:
+            ax.axvline(noise_rms[band], color="k", ls="--", lw=0.8,
+                       label=f"TOD rms {noise_rms[band]:.0f} mJy")
+        ax.set(xlabel="injected peak flux $S_p$ (mJy)", ylabel="detection efficiency",
+               title=band, ylim=(-0.03, 1.03))
+        ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_flux_residuals(path, residuals):
+    bands = sorted(set(residuals["bandpass"])) if len(residuals) else []
+    fig, axes = _panels(bands)
+    for ax, band in zip(axes, bands):
+        mine = residuals[residuals["bandpass"] == band]
+        rises = sorted(set(mine["t_rise"]))
+        colors = plt.cm.viridis(np.linspace(0, 0.9, len(rises)))
+        for k, (t_rise, color) in enumerate(zip(rises, colors)):
+            row = mine[mine["t_rise"] == t_rise]
+            s = np.asarray(row["s_peak"], float)
+            r = np.asarray(row["residual"], float)
+            jitter = 1 + 0.015 * (k - len(rises) / 2)
+            ax.plot(s * jitter, r, ".", color=color, alpha=0.25, ms=3)
+            grid = np.unique(s)
+            med = [np.nanmedian(r[s == g]) for g in grid]
+            ax.plot(grid * jitter, med, "-o", color=color, ms=4, label=f"$t_r$ = {t_rise:g} s")
+        ax.axhline(0, color="k", lw=0.8)
+        ax.set(xlabel="injected peak flux $S_p$ (mJy)",
+               ylabel="(fitted - injected) / injected flux", title=band, ylim=(-1, 2))
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_pointing(path, residuals):
+    bands = sorted(set(residuals["bandpass"])) if len(residuals) else []
+    fig, axes = _panels(bands)
+    for ax, band in zip(axes, bands):
+        off = np.asarray(residuals["offset"][residuals["bandpass"] == band], float) / (ARCMIN / 60)
+        fwhm = get_band(band).fwhm / (ARCMIN / 60)
+        ax.hist(off, bins=np.linspace(0, 30, 31), color="teal", alpha=0.8)
+        ax.axvline(np.median(off), color="k", label=f"median {np.median(off):.1f}\"")
+        ax.axvline(fwhm, color="0.4", ls="--", label=f"FWHM {fwhm:.0f}\"")
+        ax.axvline(fwhm_to_sigma(fwhm), color="0.4", ls=":", label=f"beam sigma {fwhm_to_sigma(fwhm):.0f}\"")
+        ax.set(xlabel="fitted - true position (arcsec)", ylabel="detections", title=band)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def write_figures(folder, eff, limits, residuals, noise_rms):
+    plot_efficiency(folder / "efficiency.png", eff, noise_rms)
+    plot_flux_residuals(folder / "flux_residuals.png", residuals)
+    plot_pointing(folder / "pointing.png", residuals)

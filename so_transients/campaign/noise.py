@@ -1,0 +1,150 @@
+"""The campaign's noise-only observations: simulated once, preprocessed and filtered once.
+
+For every group (observation x wafer x band) the site config's steps up to
+``transient_filter`` run through sotodlib's ``Pipeline`` on the noise-only TOD. What injections
+need is then kept on disk, under ``<output>/noise/groups/<group>/``:
+
+* ``snr.npy``: the noise-only S/N timestream (float32, dets x samps), opened memory-mapped so
+  each worker reads only the windows it needs;
+* ``state.h5``: the rest of the AxisManager without the signal (timestamps, boresight and its
+  quaternions, focal plane, det_info, flags, ``transient_filter`` with the noise model);
+* ``info.json``: the fit's error scale measured on the noise, and the false positives of the
+  catalogue steps run on the noise-only S/N and on its sign-inverted copy (the site pipeline on
+  -TOD: every standard step and the filter are odd in the data, so its S/N is exactly minus
+  this one);
+* ``false_noise.ecsv`` / ``false_inverted.ecsv``: those false detections.
+"""
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from astropy.table import Table
+from sotodlib import core
+from sotodlib.preprocess import Pipeline
+
+from ..injection import NoiseModel
+from ..processes import BORE_Q, boresight_q
+from ..sim.simulate import simulate
+from .search import CatalogSearch
+
+log = logging.getLogger(__name__)
+KEEP_FIELDS = ("timestamps", "boresight", "focal_plane", "det_info", "obs_info", "flags",
+               "transient_filter", BORE_Q, "iir_params")
+
+
+@dataclass(frozen=True)
+class Group:
+    obs_id: str
+    wafer: str
+    band: str
+
+    @property
+    def label(self) -> str:
+        return f"{self.obs_id}_{self.wafer}_{self.band}"
+
+
+def noise_dataset(cfg, root: Path, progress=True) -> Path:
+    """The noise-only dataset's context.yaml, simulated unless ``root`` holds it for this
+    config already."""
+    stamp = root / "noise_digest.txt"
+    context = root / "context.yaml"
+    if context.exists() and stamp.exists() and stamp.read_text() == cfg.noise_digest():
+        return context
+    result = simulate(cfg.sim, output=root, overwrite=True, progress=progress)
+    stamp.write_text(cfg.noise_digest())
+    return result.context
+
+
+def campaign_groups(context, bands) -> list:
+    """Every (observation, wafer, band) group of the dataset in ``bands``."""
+    ctx = core.Context(str(context))
+    groups = []
+    for obs_id in ctx.obsdb.query()["obs_id"]:
+        for detset in ctx.obsfiledb.get_detsets(obs_id):
+            wafer, band = detset.split("_")
+            if band in bands:
+                groups.append(Group(str(obs_id), wafer, band))
+    return groups
+
+
+def prepare_group(context, group: Group, standard_steps, catalog_steps, folder, inverted=True):
+    """Filter one noise-only group and store its state in ``folder`` (see the module doc)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    ctx = core.Context(str(context))
+    aman = ctx.get_obs(group.obs_id, dets={"wafer_slot": group.wafer, "bandpass": group.band})
+    Pipeline(standard_steps, logger=log).run(aman)
+    boresight_q(aman)
+    duration = float(aman.timestamps[-1] - aman.timestamps[0])
+    np.save(folder / "snr.npy", np.asarray(aman.transient_snr, np.float32))
+    probe = CatalogSearch(catalog_steps).steps[-1]
+    live = np.flatnonzero(~np.asarray(aman.transient_filter.dead, bool))
+    scale = probe.error_scale(aman, live, np.zeros(0))
+    search = CatalogSearch(catalog_steps, error_scale=scale)
+    noise = search.run(aman, group.obs_id)
+    aman.transient_snr[:] *= -1
+    flipped = search.run(aman, group.obs_id) if inverted else Table()
+    noise.write(folder / "false_noise.ecsv", overwrite=True)
+    flipped.write(folder / "false_inverted.ecsv", overwrite=True)
+    for name in [n for n in aman._fields if n not in KEEP_FIELDS]:
+        aman.move(name, None)
+    for name in [n for n in aman.flags._fields if n != "turnarounds"]:
+        aman.flags.move(name, None)
+    aman.save(str(folder / "state.h5"), overwrite=True)
+    noise_rms = float(np.median(np.asarray(aman.transient_filter.noise_level)[live]))
+    info = dict(error_scale=float(scale), duration=duration, n_dets=int(aman.dets.count),
+                noise_rms=noise_rms,
+                n_false_noise=len(noise), n_false_inverted=len(flipped), inverted=bool(inverted))
+    (folder / "info.json").write_text(json.dumps(info, indent=1))
+    return info
+
+
+@dataclass
+class GroupState:
+    """A prepared noise-only group, as the injections use it."""
+
+    group: Group
+    aman: core.AxisManager
+    snr: np.ndarray            # memory-mapped (dets, samps)
+    model: NoiseModel
+    error_scale: float
+    timestamps: np.ndarray
+    bore_q: np.ndarray
+    xi: np.ndarray
+    eta: np.ndarray
+    sigma_amp: np.ndarray
+    catalog_steps: list        # the config entries of the catalogue steps to run
+
+    @classmethod
+    def load(cls, group: Group, folder, catalog_steps):
+        folder = Path(folder)
+        aman = core.AxisManager.load(str(folder / "state.h5"))
+        info = json.loads((folder / "info.json").read_text())
+        return cls(group, aman, np.load(folder / "snr.npy", mmap_mode="r"),
+                   NoiseModel.from_aman(aman), info["error_scale"],
+                   np.asarray(aman.timestamps), np.asarray(aman[BORE_Q]),
+                   np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta),
+                   np.asarray(aman.transient_filter.sigma_amp), catalog_steps)
+
+    @property
+    def footprint(self):
+        """(centre (xi, eta), radius) of the group's detectors in the focal plane."""
+        centre = (float(self.xi.mean()), float(self.eta.mean()))
+        return centre, float(np.hypot(self.xi - centre[0], self.eta - centre[1]).max())
+
+    def window(self, dets, lo, hi, extra_snr=None, rows=()):
+        """The group's AxisManager restricted to detectors ``dets`` (sorted indices) and
+        samples ``lo:hi``, with ``transient_snr`` = noise S/N plus ``extra_snr`` on ``rows``
+        (indices into ``dets``), only where the noise S/N is valid."""
+        axes = [core.LabelAxis("dets", np.asarray(self.aman.dets.vals)[dets]),
+                core.OffsetAxis("samps", hi - lo, self.aman.samps.offset + lo)]
+        win = self.aman.restrict_axes(axes, in_place=False)
+        snr = np.array(self.snr[dets, lo:hi], np.float32)
+        if extra_snr is not None and len(rows):
+            snr[rows] += np.where(snr[rows] != 0, extra_snr, 0).astype(np.float32)
+        win.wrap("transient_snr", snr, [(0, "dets"), (1, "samps")])
+        return win

@@ -1,0 +1,182 @@
+"""Running a campaign end to end: noise-only groups, work units, results; resumable.
+
+``<output>/`` holds::
+
+    campaign.json        the config and its digest; a different config is refused
+    noise/sim/           the noise-only dataset (sotodlib context)
+    noise/groups/<g>/    each prepared group (see :mod:`so_transients.campaign.noise`)
+    units/               one pair of ECSV files per (cell, observation) work unit
+    results/             the tables, Markdown and figures (:mod:`.report`, :mod:`.figures`)
+
+An interrupted campaign is continued by running the same command again: prepared groups and
+finished units are kept, the rest is done. Units are dispatched through sotodlib's executor
+(``sotodlib.utils.procs_pool.get_exec_env``): a process pool here, ``mpi4py.futures`` under
+``mpirun`` (rank 0 runs this module, the other ranks serve as workers).
+"""
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import json
+import logging
+import multiprocessing
+import shutil
+from pathlib import Path
+
+import yaml
+from astropy.table import Table, vstack
+from tqdm.auto import tqdm
+
+from .config import CampaignConfig, Cell
+from .noise import Group, campaign_groups, noise_dataset, prepare_group
+from .search import split_pipe
+from .units import run_unit, unit_done, unit_paths
+
+log = logging.getLogger(__name__)
+
+
+def check_state(cfg: CampaignConfig, out: Path, restart=False):
+    """Refuse to mix configs: ``out`` must be new, hold this config, or be restarted."""
+    state = out / "campaign.json"
+    digest = cfg.digest()
+    if state.exists():
+        held = json.loads(state.read_text()).get("digest")
+        if held != digest:
+            if not restart:
+                raise ValueError(f"{out} holds a campaign with another config (digest {held}, "
+                                 f"this one {digest}); use another output or --restart")
+            for sub in ("units", "results"):
+                shutil.rmtree(out / sub, ignore_errors=True)
+    out.mkdir(parents=True, exist_ok=True)
+    state.write_text(json.dumps({"digest": digest, "config": dataclasses.asdict(cfg)}, indent=1,
+                                default=str))
+
+
+def pipeline_steps(cfg):
+    """(standard steps through transient_filter, catalogue steps) of the preprocess config,
+    with the campaign's overrides applied."""
+    with open(cfg.preprocess) as f:
+        pipe = yaml.safe_load(f)["process_pipe"]
+    for step in pipe:
+        for section, values in cfg.preprocess_overrides.get(step["name"], {}).items():
+            if isinstance(values, dict) and isinstance(step.get(section), dict):
+                step[section].update(values)
+            else:
+                step[section] = values
+    return split_pipe(pipe)
+
+
+def prepare_noise(cfg, out: Path, progress=True) -> dict:
+    """{Group: folder} of every prepared noise-only group (preparing what is missing)."""
+    context = noise_dataset(cfg, out / "noise" / "sim", progress)
+    standard, catalog = pipeline_steps(cfg)
+    folders = {}
+    stamp = cfg.noise_digest()
+    groups = campaign_groups(context, cfg.bands)
+    for group in tqdm(groups, desc="noise-only groups", disable=not progress):
+        folder = out / "noise" / "groups" / group.label
+        info = folder / "info.json"
+        if not (info.exists() and (folder / "digest.txt").exists()
+                and (folder / "digest.txt").read_text() == stamp):
+            prepare_group(context, group, standard, catalog, folder, cfg.inverted)
+            (folder / "digest.txt").write_text(stamp)
+        folders[group] = folder
+    return folders
+
+
+def split_flares(n, n_obs):
+    """Flares per observation: ``n`` shared as evenly as possible."""
+    return [n // n_obs + (k < n % n_obs) for k in range(n_obs)]
+
+
+def unit_specs(cfg, out: Path, folders: dict) -> list:
+    """Every (cell, observation) work unit, as plain dicts."""
+    _, catalog = pipeline_steps(cfg)
+    specs = []
+    obs_ids = sorted({g.obs_id for g in folders})
+    for cell in cfg.cells:
+        first = 0
+        for obs_id, n in zip(obs_ids, split_flares(cfg.n_flares, len(obs_ids))):
+            groups = [((g.obs_id, g.wafer, g.band), str(f)) for g, f in folders.items()
+                      if g.obs_id == obs_id and g.band == cell.band]
+            if n and groups:
+                specs.append(dict(cell=dataclasses.asdict(cell), obs_id=obs_id, n=n,
+                                  first_id=first, groups=groups, catalog_steps=catalog,
+                                  injection=dataclasses.asdict(cfg.injection),
+                                  max_dt=cfg.matching.max_dt,
+                                  max_offset_arcmin=cfg.matching.max_offset_arcmin,
+                                  seed=cfg.seed, digest=cfg.digest(), output=str(out)))
+            first += n
+    return specs
+
+
+def executor(nproc):
+    """(executor, as_completed) from sotodlib's ``get_exec_env``; None for one process."""
+    if nproc <= 1:
+        return None, None
+    from sotodlib.utils.procs_pool import get_exec_env
+
+    try:
+        _, pool, as_completed = get_exec_env(nprocs=nproc)
+    except RuntimeError:   # the start method was already set in this process (a second run)
+        pool = concurrent.futures.ProcessPoolExecutor(
+            nproc, mp_context=multiprocessing.get_context("spawn"))
+        as_completed = concurrent.futures.as_completed
+    return pool, as_completed
+
+
+def run_units(specs, nproc, progress=True, pool=None, as_completed=None):
+    """Run the work units, in a pool when ``nproc`` > 1; returns their summaries."""
+    bar = tqdm(total=len(specs), desc="injections", unit="unit", disable=not progress)
+    done = []
+    if pool is None and nproc > 1:
+        pool, as_completed = executor(nproc)
+    if pool is None:
+        for spec in specs:
+            done.append(run_unit(spec))
+            bar.update()
+    else:
+        futures = [pool.submit(run_unit, spec) for spec in specs]
+        for future in as_completed(futures):
+            done.append(future.result())
+            bar.update()
+    bar.close()
+    return done
+
+
+def collect(specs):
+    """(flares, detections) of the work units ``specs`` (all finished)."""
+    flares, detections = [], []
+    for spec in specs:
+        flares_path, det_path = unit_paths(spec["output"], _cell(spec), spec["obs_id"])
+        flares.append(Table.read(flares_path))
+        det = Table.read(det_path)
+        if len(det):
+            detections.append(det)
+    for table in flares + detections:
+        table.meta.clear()
+    return (vstack(flares) if flares else Table()), (vstack(detections) if detections else Table())
+
+
+def run_campaign(cfg: CampaignConfig, restart=False, progress=True, pool=None,
+                 as_completed=None) -> Path:
+    """Run (or continue) ``cfg``; returns the results folder."""
+    from .report import write_results
+
+    out = Path(cfg.output)
+    check_state(cfg, out, restart)
+    folders = prepare_noise(cfg, out, progress)
+    specs = unit_specs(cfg, out, folders)
+    todo = [s for s in specs if not unit_done(out, _cell(s), s["obs_id"], cfg.digest())]
+    if todo:
+        run_units(todo, cfg.nproc, progress, pool, as_completed)
+    flares, detections = collect(specs)
+    check = None
+    if cfg.full_check.cells:
+        from .full_check import run_full_check
+        check = run_full_check(cfg, out, folders, progress)
+    return write_results(cfg, out / "results", flares, detections, folders, check)
+
+
+def _cell(spec):
+    return Cell(**spec["cell"])

@@ -1,0 +1,90 @@
+"""The quick campaign, run as a user runs it: ``so-transients campaign`` in a subprocess."""
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from astropy.table import Table
+
+ROOT = Path(__file__).resolve().parent.parent
+QUICK = ROOT / "configs" / "campaign_quick.yaml"
+
+
+def campaign(out, *extra):
+    env = dict(os.environ, OMP_NUM_THREADS="1", OMP_WAIT_POLICY="passive")
+    cmd = [sys.executable, "-m", "so_transients.cli", "campaign", str(QUICK), "-o", str(out),
+           "--nproc", "2", "-q", *extra]
+    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=1800)
+
+
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory):
+    out = tmp_path_factory.mktemp("campaign") / "quick"
+    run = campaign(out)
+    assert run.returncode == 0, run.stderr[-3000:]
+    return out, run
+
+
+def test_every_output_is_written(quick):
+    out, run = quick
+    results = out / "results"
+    for name in ("efficiency.ecsv", "thresholds.ecsv", "thresholds.md", "flux_residuals.ecsv",
+                 "pointing.ecsv", "false_positives.ecsv", "full_check.ecsv", "flares.ecsv",
+                 "efficiency.png", "flux_residuals.png", "pointing.png"):
+        assert (results / name).stat().st_size > 0, name
+    assert "| 0.5 |" in run.stdout and "| 400 | 550 | 800 |" in run.stdout   # paper's Table 2
+    false = Table.read(results / "false_positives.ecsv")
+    assert str(false["rate_noise"].unit) == "1 / h" and false["hours"][0] == pytest.approx(1 / 6, rel=1e-3)
+
+
+def test_efficiency_rises_with_peak_flux_within_errors(quick):
+    eff = Table.read(quick[0] / "results" / "efficiency.ecsv")
+    assert set(eff["injected"]) == {20}
+    for t_rise in set(eff["t_rise"]):
+        rows = eff[eff["t_rise"] == t_rise]
+        rows.sort("s_peak")
+        e = np.asarray(rows["efficiency"])
+        sigma = (np.asarray(rows["eff_hi"]) - np.asarray(rows["eff_lo"])) / 2
+        for i in range(len(rows)):
+            for j in range(i + 1, len(rows)):
+                # one-sided 3 sigma: ~0.1 % chance per pair of a false failure
+                assert e[j] >= e[i] - 3 * np.hypot(sigma[i], sigma[j]), (t_rise, i, j)
+        assert e[-1] - e[0] > 3 * np.hypot(sigma[0], sigma[-1])   # it really rises
+
+
+def test_fast_path_agrees_with_the_full_site_pipeline(quick):
+    check = Table.read(quick[0] / "results" / "full_check.ecsv")
+    assert len(check) == 1 and check["n"][0] == 15
+    assert abs(check["z"][0]) < 3
+    # the same noise and flares: most flares get the same verdict from both paths
+    assert check["agree"][0] >= 0.7 * check["n"][0]
+
+
+def test_detections_carry_flux_and_pointing_truth(quick):
+    res = Table.read(quick[0] / "results" / "flux_residuals.ecsv")
+    assert len(res) > 0 and np.all(res["offset"] <= 0.5 * np.pi / 180 / 60)
+    bright = res[(res["s_peak"] == 1200) & (res["t_rise"] == 5)]
+    # S/N ~ 30 in the fit: the flux at the detection time is recovered to within a few errors
+    pull = (bright["flux"] - bright["flux_true"]) / bright["flux_err"]
+    assert abs(np.median(pull)) < 3
+
+
+def test_an_interrupted_campaign_resumes_and_refuses_another_config(quick, tmp_path):
+    out, _ = quick
+    units = sorted((out / "units").glob("*.flares.ecsv"))
+    kept = {p: p.stat().st_mtime_ns for p in units[1:]}
+    before = Table.read(units[0])
+    units[0].unlink()
+    rerun = campaign(out)
+    assert rerun.returncode == 0, rerun.stderr[-3000:]
+    assert all(p.stat().st_mtime_ns == t for p, t in kept.items())    # not redone
+    again = Table.read(units[0])
+    assert np.array_equal(again["detected"], before["detected"])        # same seed, same result
+    changed = tmp_path / "changed.yaml"
+    changed.write_text(QUICK.read_text().replace("n_flares: 20", "n_flares: 21"))
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    refused = subprocess.run([sys.executable, "-m", "so_transients.cli", "campaign", str(changed),
+                              "-o", str(out), "-q"], env=env, capture_output=True, text=True)
+    assert refused.returncode == 2 and "another config" in refused.stderr

@@ -26,7 +26,8 @@ def _simulate(args):
 
     config = load_config(args.config, {"seed": args.seed, "output": args.out})
     t0 = time.time()
-    result = simulate(config, overwrite=args.overwrite, progress=not args.quiet)
+    result = simulate(config, overwrite=args.overwrite, progress=not args.quiet,
+                      workers=getattr(args, "workers", 1))
     print(f"Simulated {len(result.obs_ids)} observation(s) in {time.time() - t0:.0f} s; "
           f"context: {result.context}")
     return result
@@ -93,6 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--out", help="output folder (default: the config's `output`)")
     p.add_argument("--seed", type=int, help="override the config's seed")
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
+    p.add_argument("--workers", type=int, default=1,
+                   help="threads generating detector chunks (same result for any number)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_simulate)
 

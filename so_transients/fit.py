@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import spectral_ops
 from .matched_filter import mad_std
 
 FIT_FIELDS = ("flux", "flux_err", "dxi", "deta", "dxi_err", "deta_err", "offset", "offset_err",
@@ -83,6 +84,55 @@ def _shape(track, along0, across0, dxi, deta):
     return resp * gauss, tau, across, gauss
 
 
+def _uniform_step(lags):
+    """The spacing of ``lags`` if they are uniform (and at least two), else None."""
+    if len(lags) < 2:
+        return None
+    step = (lags[-1] - lags[0]) / (len(lags) - 1)
+    return step if step > 0 and np.allclose(np.diff(lags), step, rtol=1e-6, atol=0) else None
+
+
+class _BeamModel:
+    """Model and Jacobian of ``a0 B + c`` at fixed samples, one compiled pass each
+    (:func:`so_transients.spectral_ops.beam_terms`) when the response lags are uniform."""
+
+    def __init__(self, track, along0, across0):
+        self.track, self.along0, self.across0 = track, along0, across0
+        self.slope = np.gradient(track.response, track.lags) if len(track.lags) > 1 \
+            else np.zeros_like(track.response)
+        self.step = _uniform_step(np.asarray(track.lags))
+        n = len(along0)
+        self.shape, self.d_resp, self.d_gauss = np.empty(n), np.empty(n), np.empty(n)
+
+    def _terms(self, dxi, deta, jac):
+        t = self.track
+        ux, uy = t.along
+        if self.step is None:
+            shape, tau, across, gauss = _shape(t, self.along0, self.across0, dxi, deta)
+            if not jac:
+                return shape, None, None
+            d_resp = np.interp(tau, t.lags, self.slope, left=0.0, right=0.0) / t.speed * gauss
+            return shape, d_resp, shape * across / t.sigma**2
+        empty = np.empty(0)
+        spectral_ops.beam_terms(self.along0, self.across0, dxi * ux + deta * uy,
+                                -dxi * uy + deta * ux, 1.0 / t.speed, float(t.lags[0]),
+                                1.0 / self.step, np.asarray(t.response, float), self.slope,
+                                1.0 / t.sigma**2, self.shape,
+                                self.d_resp if jac else empty, self.d_gauss if jac else empty)
+        return self.shape, (self.d_resp if jac else None), (self.d_gauss if jac else None)
+
+    def model(self, _, a0, dxi, deta, c):
+        return a0 * self._terms(dxi, deta, False)[0] + c
+
+    def jacobian(self, _, a0, dxi, deta, c):
+        ux, uy = self.track.along
+        shape, d_resp, d_gauss = self._terms(dxi, deta, True)
+        # d along / d(dxi, deta) = -(ux, uy); d across / d(dxi, deta) = (uy, -ux)
+        d_dxi = a0 * (-ux * d_resp - uy * d_gauss)
+        d_deta = a0 * (-uy * d_resp + ux * d_gauss)
+        return np.stack([shape, d_dxi, d_deta, np.ones_like(shape)], axis=1)
+
+
 def linear_amplitude(shape, amp, weight):
     """Weighted least-squares amplitude of ``shape`` in ``amp`` and its naive error."""
     sw = np.sum(weight * shape**2)
@@ -112,20 +162,8 @@ def fit_candidate(track: Track, det_xi, det_eta, amp, sigma_amp, inflation=1.0, 
     along0, across0 = (v[ok] for v in _offsets(track, det_xi, det_eta))
     y = amp[ok].astype(float)
     s = np.broadcast_to(sigma_amp[:, None], amp.shape)[ok]
-    slope = np.gradient(track.response, track.lags)
-    ux, uy = track.along
-
-    def model(_, a0, dxi, deta, c):
-        return a0 * _shape(track, along0, across0, dxi, deta)[0] + c
-
-    def jacobian(_, a0, dxi, deta, c):
-        shape, tau, across, gauss = _shape(track, along0, across0, dxi, deta)
-        d_resp = np.interp(tau, track.lags, slope, left=0.0, right=0.0) / track.speed * gauss
-        d_gauss = shape * across / track.sigma**2
-        # d along / d(dxi, deta) = -(ux, uy); d across / d(dxi, deta) = (uy, -ux)
-        d_dxi = a0 * (-ux * d_resp - uy * d_gauss)
-        d_deta = a0 * (-uy * d_resp + ux * d_gauss)
-        return np.stack([shape, d_dxi, d_deta, np.ones_like(shape)], axis=1)
+    beam = _BeamModel(track, along0, across0)
+    model, jacobian = beam.model, beam.jacobian
 
     a_start, _ = linear_amplitude(model(None, 1.0, 0.0, 0.0, 0.0), y, s**-2)
     reach = 3 * track.sigma

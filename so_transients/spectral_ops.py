@@ -114,3 +114,32 @@ def interpolate_runs(x, bad):
             for j in range(start, s):
                 frac = (j - start + 1) / span
                 x[i, j] = left + (right - left) * frac
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def beam_terms(along0, across0, shift_along, shift_across, inv_speed, lag0, inv_dlag, response,
+               slope, inv_sigma2, shape, d_resp, d_gauss):
+    """The fit's beam model at every sample in one pass (see :mod:`so_transients.fit`).
+
+    ``response``/``slope`` are sampled on uniform lags ``lag0 + k / inv_dlag`` and linearly
+    interpolated (zero outside, as ``np.interp(..., left=0, right=0)``). Fills ``shape`` =
+    response(tau) x gauss(across) and, when ``d_resp`` is non-empty, the derivative terms
+    ``d_resp`` = slope(tau) / speed x gauss and ``d_gauss`` = shape x across / sigma^2.
+    """
+    m = len(response)
+    jac = len(d_resp) > 0
+    for k in range(len(along0)):
+        across = across0[k] - shift_across
+        x = ((along0[k] - shift_along) * inv_speed - lag0) * inv_dlag
+        r = 0.0
+        s = 0.0
+        if 0.0 <= x <= m - 1:
+            i = min(int(x), m - 2)
+            f = x - i
+            r = response[i] + f * (response[i + 1] - response[i])
+            s = slope[i] + f * (slope[i + 1] - slope[i])
+        g = np.exp(-0.5 * across * across * inv_sigma2)
+        shape[k] = r * g
+        if jac:
+            d_resp[k] = s * inv_speed * g
+            d_gauss[k] = r * g * across * inv_sigma2

@@ -211,3 +211,24 @@ def test_catalogue_slots_survive_concatenation_of_groups():
     assert list(rows["det"]).count("a0") == 2 and "b0" in rows["det"]
     with pytest.raises(ValueError, match="do not fit"):
         group(["x"], 3)
+
+
+def test_compiled_beam_model_equals_the_interpolated_one():
+    """The fit's one-pass kernel (uniform lags) and the np.interp path agree to rounding."""
+    from so_transients.fit import _BeamModel
+
+    rng = np.random.default_rng(0)
+    lags = np.arange(-220, 221) / 220.0
+    response = np.exp(-0.5 * (lags / 0.016) ** 2) - 0.1 * np.exp(-0.5 * (lags / 0.2) ** 2)
+    track = Track(np.linspace(-1e-3, 1e-3, 50), np.zeros(50), np.array([0.8, 0.6]), 0.0175,
+                  2.7e-4, lags, response)
+    along0, across0 = rng.uniform(-4e-3, 4e-3, 5000), rng.uniform(-2e-3, 2e-3, 5000)
+    fast = _BeamModel(track, along0, across0)
+    slow = _BeamModel(track, along0, across0)
+    slow.step = None
+    assert fast.step == pytest.approx(1 / 220.0)
+    for p in [(1.0, 0.0, 0.0, 0.0), (2.0, 1e-4, -5e-5, 3.0), (1.0, 4e-3, 0.0, 0.0)]:
+        assert np.allclose(fast.model(None, *p), slow.model(None, *p), rtol=0, atol=1e-12)
+        jf, js = fast.jacobian(None, *p), slow.jacobian(None, *p)
+        assert np.allclose(jf, js, rtol=0, atol=1e-12 * np.abs(js).max())
+

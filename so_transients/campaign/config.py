@@ -69,7 +69,7 @@ class Injection:
     window_pad: float = 3.0          # s of data kept on each side of a crossing
     filter_pad: float = 10.0         # s of zero padding when filtering the injected signal
     strip_sigma: float = 10.0        # detectors within this many beam sigmas of the track
-    min_expected_snr: float = 1.0    # skip crossings whose best detector expects less S/N
+    min_expected_snr: float = 0.5    # skip crossings whose best detector expects less S/N
     max_crossings: int | None = None  # per flare and group, brightest first (None: all)
 
 
@@ -136,6 +136,11 @@ class CampaignConfig:
         with open(self.preprocess) as f:
             data["preprocess"] = yaml.safe_load(f)["process_pipe"]
         text = json.dumps(data, sort_keys=True, default=str)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def sim_digest(self) -> str:
+        """Hash of what the noise-only simulation depends on."""
+        text = json.dumps([self.simulation, self.seed], sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
     def noise_digest(self) -> str:

@@ -64,7 +64,7 @@ def full_pipeline(cfg, folder: Path, flares, t0, progress):
     sim = {"seed": cfg.seed, **cfg.simulation}
     sim["flares"] = {"list": flare_list(flares, t0)}
     result = simulate(SimConfig.from_dict(sim), output=folder / "sim", overwrite=True,
-                      progress=progress)
+                      progress=progress, workers=cfg.nproc)
     dataset = result.context.parent
     config = write_site_config(dataset, template=cfg.preprocess,
                                overrides=cfg.preprocess_overrides)

@@ -111,7 +111,8 @@ def inject_flare(state, flare, search, options) -> CrossingResult:
         if expected < options.min_expected_snr or limit:
             result.n_skipped += 1
             continue
-        rows = np.flatnonzero(signal.max(axis=1) > 0)
+        # detectors whose injected S/N would stay below 1e-3 are left as pure noise
+        rows = np.flatnonzero(signal.max(axis=1) > 1e-3 * state.sigma_amp[dets])
         extra = filtered_snr(state.model, dets[rows], signal[rows], pad=options.filter_pad)
         found = search.run(state.window(dets, lo, hi, extra, rows), state.group.obs_id)
         result.n_searched += 1

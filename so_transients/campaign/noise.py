@@ -50,12 +50,12 @@ class Group:
 def noise_dataset(cfg, root: Path, progress=True) -> Path:
     """The noise-only dataset's context.yaml, simulated unless ``root`` holds it for this
     config already."""
-    stamp = root / "noise_digest.txt"
+    stamp = root / "sim_digest.txt"
     context = root / "context.yaml"
-    if context.exists() and stamp.exists() and stamp.read_text() == cfg.noise_digest():
+    if context.exists() and stamp.exists() and stamp.read_text() == cfg.sim_digest():
         return context
-    result = simulate(cfg.sim, output=root, overwrite=True, progress=progress)
-    stamp.write_text(cfg.noise_digest())
+    result = simulate(cfg.sim, output=root, overwrite=True, progress=progress, workers=cfg.nproc)
+    stamp.write_text(cfg.sim_digest())
     return result.context
 
 
@@ -103,6 +103,22 @@ def prepare_group(context, group: Group, standard_steps, catalog_steps, folder, 
     return info
 
 
+#: What the catalogue steps read besides transient_snr; the rest is dropped from the group's
+#: AxisManager so that cutting a window out of it stays cheap.
+WINDOW_FIELDS = {"flags": ("turnarounds",),
+                 "transient_filter": ("dead", "sigma_amp", "beam_sigma", "fit_inflation",
+                                      "lag", "response", "sigma_t")}
+
+
+def _slim(aman):
+    for name, keep in WINDOW_FIELDS.items():
+        sub = aman[name]
+        for field in [f for f in sub._fields if f not in keep]:
+            sub.move(field, None)
+    if "iir_params" in aman._fields:
+        aman.move("iir_params", None)
+
+
 @dataclass
 class GroupState:
     """A prepared noise-only group, as the injections use it."""
@@ -124,8 +140,10 @@ class GroupState:
         folder = Path(folder)
         aman = core.AxisManager.load(str(folder / "state.h5"))
         info = json.loads((folder / "info.json").read_text())
+        model = NoiseModel.from_aman(aman)
+        _slim(aman)
         return cls(group, aman, np.load(folder / "snr.npy", mmap_mode="r"),
-                   NoiseModel.from_aman(aman), info["error_scale"],
+                   model, info["error_scale"],
                    np.asarray(aman.timestamps), np.asarray(aman[BORE_Q]),
                    np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta),
                    np.asarray(aman.transient_filter.sigma_amp), catalog_steps)

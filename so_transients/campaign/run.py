@@ -70,6 +70,9 @@ def prepare_noise(cfg, out: Path, progress=True) -> dict:
     """{Group: folder} of every prepared noise-only group (preparing what is missing)."""
     context = noise_dataset(cfg, out / "noise" / "sim", progress)
     standard, catalog = pipeline_steps(cfg)
+    for step in standard:   # filter threads: as many as the campaign's processes
+        if step["name"] == "transient_filter":
+            step.setdefault("process", {}).setdefault("workers", cfg.nproc)
     folders = {}
     stamp = cfg.noise_digest()
     groups = campaign_groups(context, cfg.bands)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import shutil
 import zlib
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -168,8 +169,10 @@ def _draw_sources(config: SimConfig, blocks, all_dets):
     return flares, (vstack(sources) if sources else empty_table(POINT_SOURCE_COLUMNS))
 
 
-def simulate(config: SimConfig, output=None, overwrite=False, progress=True) -> SimulationResult:
-    """Run the simulation described by ``config`` and write the dataset to ``output``."""
+def simulate(config: SimConfig, output=None, overwrite=False, progress=True,
+             workers=1) -> SimulationResult:
+    """Run the simulation described by ``config`` and write the dataset to ``output``;
+    ``workers`` threads generate chunks of detectors (the result does not depend on it)."""
     root = Path(output or config.output)
     if (root / "context.yaml").exists():
         if not overwrite:
@@ -195,7 +198,8 @@ def simulate(config: SimConfig, output=None, overwrite=False, progress=True) -> 
                 start, obs_cfg.duration, FLAVOR_SAMPLE_RATE[flavors[tube]], config.scan)
             obs_id = obs_id_for(start, tube)
             glitch_tables += _simulate_obs(config, writer, sky, tl, tube, obs_id, b,
-                                           all_dets[tube], flares, point_sources, progress)
+                                           all_dets[tube], flares, point_sources, progress,
+                                           workers)
             result.obs_ids.append(obs_id)
     result.glitches = vstack(glitch_tables) if glitch_tables else Table()
     _write_truth(root, flares, point_sources, result.glitches)
@@ -214,7 +218,7 @@ def _write_truth(root, flares, point_sources, glitches):
 
 
 def _simulate_obs(config, writer, sky, tl: Timeline, tube, obs_id, block, dets, flares,
-                  point_sources, progress):
+                  point_sources, progress, workers=1):
     """Write one observation (all detsets of one tube); returns its glitch truth tables."""
     writer.add_detector_metadata(obs_id, tube, dets)
     pattern = config.scan
@@ -240,12 +244,12 @@ def _simulate_obs(config, writer, sky, tl: Timeline, tube, obs_id, block, dets, 
                              {k: v[sel] for k, v in dets.items()}, daz[sel], el_det[sel],
                              flares[flares["band"] == band_name],
                              point_sources[point_sources["band"] == band_name],
-                             glitches, progress)
+                             glitches, progress, workers)
     return glitch_tables
 
 
 def _simulate_detset(config, writer, sky, tl: Timeline, obs_id, detset, dets, daz, el_det,
-                     flares, point_sources, glitches, progress):
+                     flares, point_sources, glitches, progress, workers=1):
     band = get_band(dets["bandpass"][0])
     white = float(config.noise.white_mjy[band.name])
     center = (dets["xi"].mean(), dets["eta"].mean())
@@ -257,24 +261,33 @@ def _simulate_detset(config, writer, sky, tl: Timeline, obs_id, detset, dets, da
     atm_scale = sky.atmosphere_scale(band, white, tl) if sky.atm is not None else 0.0
     ndet, nsamp = len(dets["xi"]), len(tl.timestamps)
     path = writer.tod_path(obs_id, detset)
-    chunks = range(0, ndet, DETS_PER_CHUNK)
+    slices = [slice(s, min(s + DETS_PER_CHUNK, ndet)) for s in range(0, ndet, DETS_PER_CHUNK)]
+
+    def chunk(sl):
+        tod = np.zeros((sl.stop - sl.start, nsamp), dtype=np.float32)
+        if config.noise.enabled:
+            for i, name in enumerate(dets["readout_id"][sl]):
+                rng = rng_for(config.seed, WHITE, obs_id, name)
+                tod[i] = rng.standard_normal(nsamp, dtype=np.float32) * np.float32(white)
+        if sky.atm is not None:
+            tod += np.float32(atm_scale) * sky.atm.sample(tl.t_rel, tl.az, daz[sl], el_det[sl])
+        if sky.cmb is not None:
+            tod += sky.cmb.sample(band, tl.sight, dets["xi"][sl], dets["eta"][sl],
+                                  dets["gamma"][sl])
+        add_sources(tod, dets["xi"][sl], dets["eta"][sl], crossings, band.sigma)
+        add_glitches(tod, dets["readout_id"][sl], tl.timestamps, glitches,
+                     config.glitches.time_constant)
+        return tod
+
+    bar = tqdm(total=len(slices), desc=f"{obs_id} {detset}", unit="chunk",
+               disable=not progress, leave=False)
     with TodWriter(path, obs_id, detset, dets["readout_id"], tl.timestamps, tl.az, tl.el,
-                   np.zeros(nsamp)) as out:
-        for start in tqdm(chunks, desc=f"{obs_id} {detset}", unit="chunk", disable=not progress,
-                          leave=False):
-            sl = slice(start, min(start + DETS_PER_CHUNK, ndet))
-            tod = np.zeros((sl.stop - sl.start, nsamp), dtype=np.float32)
-            if config.noise.enabled:
-                for i, name in enumerate(dets["readout_id"][sl]):
-                    rng = rng_for(config.seed, WHITE, obs_id, name)
-                    tod[i] = rng.standard_normal(nsamp, dtype=np.float32) * np.float32(white)
-            if sky.atm is not None:
-                tod += np.float32(atm_scale) * sky.atm.sample(tl.t_rel, tl.az, daz[sl], el_det[sl])
-            if sky.cmb is not None:
-                tod += sky.cmb.sample(band, tl.sight, dets["xi"][sl], dets["eta"][sl],
-                                      dets["gamma"][sl])
-            add_sources(tod, dets["xi"][sl], dets["eta"][sl], crossings, band.sigma)
-            add_glitches(tod, dets["readout_id"][sl], tl.timestamps, glitches,
-                         config.glitches.time_constant)
-            out.write_rows(sl.start, tod)
+                   np.zeros(nsamp)) as out, ThreadPoolExecutor(workers) as pool:
+        # at most 2 x workers chunks in flight; written in order by this thread
+        for batch in range(0, len(slices), 2 * workers):
+            todo = slices[batch:batch + 2 * workers]
+            for sl, tod in zip(todo, pool.map(chunk, todo)):
+                out.write_rows(sl.start, tod)
+                bar.update()
+    bar.close()
     writer.add_detset_file(obs_id, detset, dets["readout_id"], path, nsamp)

@@ -32,13 +32,20 @@ def site_config(dataset, template=TEMPLATE, overrides=None) -> dict:
     cfg["plot_dir"] = str(out / "plots")
     cfg["archive"]["index"] = str(out / "process_archive.sqlite")
     cfg["archive"]["policy"]["filename"] = str(out / "preprocess_archive.h5")
-    for step in cfg["process_pipe"]:
+    apply_overrides(cfg["process_pipe"], overrides)
+    return cfg
+
+
+def apply_overrides(process_pipe, overrides=None):
+    """Merge ``overrides`` ({step name: {section: dict or value}}) into the matching entries
+    of ``process_pipe`` in place: dict sections are updated, other values replaced."""
+    for step in process_pipe:
         for section, values in (overrides or {}).get(step["name"], {}).items():
             if isinstance(values, dict) and isinstance(step.get(section), dict):
                 step[section].update(values)
             else:
                 step[section] = values
-    return cfg
+    return process_pipe
 
 
 def write_site_config(dataset, path=None, template=TEMPLATE, overrides=None) -> Path:

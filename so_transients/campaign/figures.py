@@ -24,15 +24,25 @@ def _panels(bands):
     return fig, axes[0]
 
 
+def _by_rise(rows):
+    """(index, t_r, colour, rows of that t_r) for each rise time in ``rows``, shortest first."""
+    rises = sorted(set(rows["t_rise"]))
+    colors = plt.cm.viridis(np.linspace(0, 0.9, len(rises)))
+    for k, (t_rise, color) in enumerate(zip(rises, colors)):
+        yield k, t_rise, color, rows[rows["t_rise"] == t_rise]
+
+
+def _save(fig, path):
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def plot_efficiency(path, eff, noise_rms):
     bands = sorted(set(eff["band"]))
     fig, axes = _panels(bands)
     for ax, band in zip(axes, bands):
-        mine = eff[eff["band"] == band]
-        rises = sorted(set(mine["t_rise"]))
-        colors = plt.cm.viridis(np.linspace(0, 0.9, len(rises)))
-        for t_rise, color in zip(rises, colors):
-            row = mine[mine["t_rise"] == t_rise]
+        for _, t_rise, color, row in _by_rise(eff[eff["band"] == band]):
             row.sort("s_peak")
             e = np.asarray(row["efficiency"])
             ax.errorbar(row["s_peak"], e, yerr=[e - row["eff_lo"], row["eff_hi"] - e],
@@ -45,9 +55,7 @@ def plot_efficiency(path, eff, noise_rms):
         ax.set(xlabel="injected peak flux $S_p$ (mJy)", ylabel="detection efficiency",
                title=band, ylim=(-0.03, 1.03))
         ax.legend(fontsize=7, loc="lower right")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def plot_flux_residuals(path, residuals):
@@ -55,13 +63,11 @@ def plot_flux_residuals(path, residuals):
     fig, axes = _panels(bands)
     for ax, band in zip(axes, bands):
         mine = residuals[residuals["bandpass"] == band]
-        rises = sorted(set(mine["t_rise"]))
-        colors = plt.cm.viridis(np.linspace(0, 0.9, len(rises)))
-        for k, (t_rise, color) in enumerate(zip(rises, colors)):
-            row = mine[mine["t_rise"] == t_rise]
+        n_rises = len(set(mine["t_rise"]))
+        for k, t_rise, color, row in _by_rise(mine):
             s = np.asarray(row["s_peak"], float)
             r = np.asarray(row["residual"], float)
-            jitter = 1 + 0.015 * (k - len(rises) / 2)
+            jitter = 1 + 0.015 * (k - n_rises / 2)
             ax.plot(s * jitter, r, ".", color=color, alpha=0.25, ms=3)
             grid = np.unique(s)
             med = [np.nanmedian(r[s == g]) for g in grid]
@@ -70,9 +76,7 @@ def plot_flux_residuals(path, residuals):
         ax.set(xlabel="injected peak flux $S_p$ (mJy)",
                ylabel="(fitted - injected) / injected flux", title=band, ylim=(-1, 2))
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def plot_pointing(path, residuals):
@@ -87,9 +91,7 @@ def plot_pointing(path, residuals):
         ax.axvline(fwhm_to_sigma(fwhm), color="0.4", ls=":", label=f"beam sigma {fwhm_to_sigma(fwhm):.0f}\"")
         ax.set(xlabel="fitted - true position (arcsec)", ylabel="detections", title=band)
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def write_figures(folder, eff, limits, residuals, noise_rms):

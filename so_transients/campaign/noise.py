@@ -92,8 +92,6 @@ def prepare_group(context, group: Group, standard_steps, catalog_steps, folder, 
     flipped.write(folder / "false_inverted.ecsv", overwrite=True)
     for name in [n for n in aman._fields if n not in KEEP_FIELDS]:
         aman.move(name, None)
-    for name in [n for n in aman.flags._fields if n != "turnarounds"]:
-        aman.flags.move(name, None)
     aman.save(str(folder / "state.h5"), overwrite=True)
     noise_rms = float(np.median(np.asarray(aman.transient_filter.noise_level)[live]))
     info = dict(error_scale=float(scale), duration=duration, n_dets=int(aman.dets.count),
@@ -101,6 +99,11 @@ def prepare_group(context, group: Group, standard_steps, catalog_steps, folder, 
                 n_false_noise=len(noise), n_false_inverted=len(flipped), inverted=bool(inverted))
     (folder / "info.json").write_text(json.dumps(info, indent=1))
     return info
+
+
+def group_info(folder) -> dict:
+    """The ``info.json`` that :func:`prepare_group` wrote in ``folder``."""
+    return json.loads((Path(folder) / "info.json").read_text())
 
 
 #: What the catalogue steps read besides transient_snr; the rest is dropped from the group's
@@ -139,7 +142,7 @@ class GroupState:
     def load(cls, group: Group, folder, catalog_steps):
         folder = Path(folder)
         aman = core.AxisManager.load(str(folder / "state.h5"))
-        info = json.loads((folder / "info.json").read_text())
+        info = group_info(folder)
         model = NoiseModel.from_aman(aman)
         _slim(aman)
         return cls(group, aman, np.load(folder / "snr.npy", mmap_mode="r"),

@@ -7,7 +7,6 @@ fluxes, s for times, arcsec for pointing offsets, detections per hour for rates.
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +14,7 @@ from astropy import units as u
 from astropy.table import Table
 
 from ..bands import ARCMIN, get_band
+from .noise import group_info
 from .stats import LEVELS, binomial_interval, thresholds
 
 #: Clancy et al. 2025, Table 2: S_p (mJy) at 10 / 50 / 90 % efficiency, by band and t_r (s).
@@ -134,7 +134,7 @@ def false_positive_table(folders: dict) -> Table:
     """False detections per hour per band, noise-only and sign-inverted, Poisson errors."""
     per_band = {}
     for group, folder in folders.items():
-        info = json.loads((Path(folder) / "info.json").read_text())
+        info = group_info(folder)
         entry = per_band.setdefault(group.band, dict(obs=set(), wafers=set(), wafer_hours=0.0,
                                                      noise=0, inverted=0, seconds={}))
         entry["obs"].add(group.obs_id)
@@ -163,7 +163,7 @@ def noise_rms(folders: dict) -> dict:
     """Median per-sample white noise (mJy) of each band's detectors."""
     values = {}
     for group, folder in folders.items():
-        info = json.loads((Path(folder) / "info.json").read_text())
+        info = group_info(folder)
         values.setdefault(group.band, []).append(info["noise_rms"])
     return {band: float(np.median(v)) for band, v in values.items()}
 

@@ -27,6 +27,8 @@ import yaml
 from astropy.table import Table, vstack
 from tqdm.auto import tqdm
 
+from ..site import apply_overrides
+
 from .config import CampaignConfig, Cell
 from .noise import Group, campaign_groups, noise_dataset, prepare_group
 from .search import split_pipe
@@ -57,13 +59,7 @@ def pipeline_steps(cfg):
     with the campaign's overrides applied."""
     with open(cfg.preprocess) as f:
         pipe = yaml.safe_load(f)["process_pipe"]
-    for step in pipe:
-        for section, values in cfg.preprocess_overrides.get(step["name"], {}).items():
-            if isinstance(values, dict) and isinstance(step.get(section), dict):
-                step[section].update(values)
-            else:
-                step[section] = values
-    return split_pipe(pipe)
+    return split_pipe(apply_overrides(pipe, cfg.preprocess_overrides))
 
 
 def prepare_noise(cfg, out: Path, progress=True) -> dict:
@@ -95,6 +91,7 @@ def split_flares(n, n_obs):
 def unit_specs(cfg, out: Path, folders: dict) -> list:
     """Every (cell, observation) work unit, as plain dicts."""
     _, catalog = pipeline_steps(cfg)
+    digest = cfg.digest()
     specs = []
     obs_ids = sorted({g.obs_id for g in folders})
     for cell in cfg.cells:
@@ -108,7 +105,7 @@ def unit_specs(cfg, out: Path, folders: dict) -> list:
                                   injection=dataclasses.asdict(cfg.injection),
                                   max_dt=cfg.matching.max_dt,
                                   max_offset_arcmin=cfg.matching.max_offset_arcmin,
-                                  seed=cfg.seed, digest=cfg.digest(), output=str(out)))
+                                  seed=cfg.seed, digest=digest, output=str(out)))
             first += n
     return specs
 
@@ -130,20 +127,25 @@ def executor(nproc):
 
 def run_units(specs, nproc, progress=True, pool=None, as_completed=None):
     """Run the work units, in a pool when ``nproc`` > 1; returns their summaries."""
+    own = pool is None and nproc > 1
+    if own:
+        pool, as_completed = executor(nproc)
     bar = tqdm(total=len(specs), desc="injections", unit="unit", disable=not progress)
     done = []
-    if pool is None and nproc > 1:
-        pool, as_completed = executor(nproc)
-    if pool is None:
-        for spec in specs:
-            done.append(run_unit(spec))
-            bar.update()
-    else:
-        futures = [pool.submit(run_unit, spec) for spec in specs]
-        for future in as_completed(futures):
-            done.append(future.result())
-            bar.update()
-    bar.close()
+    try:
+        if pool is None:
+            for spec in specs:
+                done.append(run_unit(spec))
+                bar.update()
+        else:
+            futures = [pool.submit(run_unit, spec) for spec in specs]
+            for future in as_completed(futures):
+                done.append(future.result())
+                bar.update()
+    finally:
+        bar.close()
+        if own and pool is not None:
+            pool.shutdown()
     return done
 
 
@@ -170,7 +172,7 @@ def run_campaign(cfg: CampaignConfig, restart=False, progress=True, pool=None,
     check_state(cfg, out, restart)
     folders = prepare_noise(cfg, out, progress)
     specs = unit_specs(cfg, out, folders)
-    todo = [s for s in specs if not unit_done(out, _cell(s), s["obs_id"], cfg.digest())]
+    todo = [s for s in specs if not unit_done(out, _cell(s), s["obs_id"], s["digest"])]
     if todo:
         run_units(todo, cfg.nproc, progress, pool, as_completed)
     flares, detections = collect(specs)

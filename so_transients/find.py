@@ -15,6 +15,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from sklearn.cluster import DBSCAN
 
 log = logging.getLogger(__name__)
@@ -51,16 +52,48 @@ def scan_segments(in_turnaround, az):
     return scan, directions
 
 
-def select_samples(snr, threshold, chunk=64):
-    """(det, sample) indices and S/N of all samples with ``snr >= threshold``, row-chunked."""
-    dets, samps = [], []
-    for start in range(0, len(snr), chunk):
-        d, s = np.nonzero(snr[start:start + chunk] >= threshold)
-        dets.append(d + start)
-        samps.append(s)
-    dets = np.concatenate(dets) if dets else np.zeros(0, int)
-    samps = np.concatenate(samps) if samps else np.zeros(0, int)
-    return dets, samps, snr[dets, samps]
+def select_samples(snr, threshold, searchable=None, rows=None):
+    """(row, sample) indices and S/N of the samples with ``snr >= threshold``.
+
+    ``searchable``: optional (nsamps,) bool, samples that may be selected (scans, not
+    turnarounds); ``rows``: optional indices of the rows of ``snr`` to search (the returned
+    row indices count within them). One compiled pass over the rows, without copying them.
+    """
+    snr = np.asarray(snr)
+    rows = np.arange(len(snr)) if rows is None else np.asarray(rows, np.int64)
+    searchable = (np.ones(snr.shape[1], bool) if searchable is None
+                  else np.ascontiguousarray(searchable, bool))
+    counts = _count_above(snr, rows, np.float32(threshold), searchable)
+    dets = np.repeat(np.arange(len(rows)), counts)
+    samps = np.empty(counts.sum(), np.int64)
+    values = np.empty(counts.sum(), np.float32)
+    _fill_above(snr, rows, np.float32(threshold), searchable, samps, values)
+    return dets, samps, values
+
+
+@njit(cache=True, nogil=True)
+def _count_above(snr, rows, threshold, searchable):
+    counts = np.zeros(len(rows), np.int64)
+    for i in range(len(rows)):
+        row = snr[rows[i]]
+        n = 0
+        for s in range(len(row)):
+            if row[s] >= threshold and searchable[s]:
+                n += 1
+        counts[i] = n
+    return counts
+
+
+@njit(cache=True, nogil=True)
+def _fill_above(snr, rows, threshold, searchable, samps, values):
+    k = 0
+    for i in range(len(rows)):
+        row = snr[rows[i]]
+        for s in range(len(row)):
+            if row[s] >= threshold and searchable[s]:
+                samps[k] = s
+                values[k] = row[s]
+                k += 1
 
 
 def _tangent_plane(ra, dec):
@@ -79,17 +112,17 @@ def mean_radec(ra, dec):
         float(np.arctan2(vec[2], np.hypot(vec[0], vec[1])))
 
 
-def find_candidates(snr, timestamps, scan, directions, radec, eps, cfg: FindConfig):
+def find_candidates(snr, timestamps, scan, directions, radec, eps, cfg: FindConfig, rows=None):
     """Cluster high-S/N samples into candidates.
 
-    ``snr`` (ndet, nsamps); ``scan`` from :func:`scan_segments`; ``radec(dets, samps)`` returns
-    RA, Dec (radians) of the given samples; ``eps`` in radians. Returns ``(candidates, hits)``:
-    dicts of arrays, one row per candidate (fields :data:`CANDIDATE_FIELDS`) and one row per
-    sample that belongs to a candidate (``cand``, ``det``, ``samp``, ``snr``, ``ra``, ``dec``).
+    ``snr`` (ndet, nsamps), of which only ``rows`` (default all) are searched, and detector
+    indices count within them; ``scan`` from :func:`scan_segments`; ``radec(dets, samps)``
+    returns RA, Dec (radians) of the given samples; ``eps`` in radians. Returns
+    ``(candidates, hits)``: dicts of arrays, one row per candidate (fields
+    :data:`CANDIDATE_FIELDS`) and one row per sample that belongs to a candidate (``cand``,
+    ``det``, ``samp``, ``snr``, ``ra``, ``dec``).
     """
-    dets, samps, values = select_samples(snr, cfg.snr_threshold)
-    in_scan = scan[samps] >= 0
-    dets, samps, values = dets[in_scan], samps[in_scan], values[in_scan]
+    dets, samps, values = select_samples(snr, cfg.snr_threshold, scan >= 0, rows)
     ra, dec = radec(dets, samps)
     cands = {k: [] for k in CANDIDATE_FIELDS}
     hits = {k: [] for k in ("cand", "det", "samp", "snr", "ra", "dec")}

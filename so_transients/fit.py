@@ -29,6 +29,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.interpolate import CubicHermiteSpline
 
 from . import spectral_ops
 from .matched_filter import mad_std
@@ -74,12 +75,23 @@ def beam_shape(track: Track, det_xi, det_eta, dxi=0.0, deta=0.0):
     return _shape(track, along, across, dxi, deta)[0]
 
 
-def _shape(track, along0, across0, dxi, deta):
+def response_spline(track: Track):
+    """The filter's response as a function of time offset: the cubic Hermite interpolant of
+    ``track.response`` with the slopes of its samples, zero outside ``track.lags``. Unlike
+    linear interpolation it has a continuous derivative, so chi^2 varies smoothly with the
+    source position (with kinks at every lag, a fit's steps stall between them)."""
+    lags, response = np.asarray(track.lags, float), np.asarray(track.response, float)
+    slope = np.gradient(response, lags) if len(lags) > 1 else np.zeros_like(response)
+    return CubicHermiteSpline(lags, response, slope, extrapolate=False), slope
+
+
+def _shape(track, along0, across0, dxi, deta, spline=None):
     ux, uy = track.along
     along = along0 - (dxi * ux + deta * uy)
     across = across0 - (-dxi * uy + deta * ux)
     tau = along / track.speed
-    resp = np.interp(tau, track.lags, track.response, left=0.0, right=0.0)
+    spline = response_spline(track)[0] if spline is None else spline
+    resp = np.nan_to_num(spline(tau))
     gauss = np.exp(-0.5 * (across / track.sigma) ** 2)
     return resp * gauss, tau, across, gauss
 
@@ -93,52 +105,67 @@ def _uniform_step(lags):
 
 
 class _BeamModel:
-    """Model and Jacobian of ``a0 B + c`` at fixed samples, one compiled pass each
-    (:func:`so_transients.spectral_ops.beam_terms`) when the response lags are uniform."""
+    """chi^2 and normal equations of ``a0 B + c`` at fixed samples ``y`` (errors ``sigma``):
+    one compiled pass (:func:`so_transients.spectral_ops.beam_normal_equations`) when the
+    response lags are uniform, else numpy through :meth:`model` and :meth:`jacobian`."""
 
-    def __init__(self, track, along0, across0):
+    def __init__(self, track, along0, across0, y, sigma):
         self.track, self.along0, self.across0 = track, along0, across0
-        self.slope = np.gradient(track.response, track.lags) if len(track.lags) > 1 \
-            else np.zeros_like(track.response)
-        self.step = _uniform_step(np.asarray(track.lags))
-        n = len(along0)
-        self.shape, self.d_resp, self.d_gauss = np.empty(n), np.empty(n), np.empty(n)
+        self.y, self.w = y, sigma**-2.0
+        self.response = np.asarray(track.response, float)
+        self.spline, self.slope = response_spline(track)
+        step = _uniform_step(np.asarray(track.lags))
+        ux, uy = track.along
+        self.geom = None if step is None else np.array(
+            [ux, uy, 1.0 / track.speed, float(track.lags[0]), 1.0 / step, track.sigma**-2.0])
 
-    def _terms(self, dxi, deta, jac):
+    def model(self, p):
+        a0, dxi, deta, c = p
+        return a0 * _shape(self.track, self.along0, self.across0, dxi, deta, self.spline)[0] + c
+
+    def jacobian(self, p):
+        a0, dxi, deta, _ = p
         t = self.track
         ux, uy = t.along
-        if self.step is None:
-            shape, tau, across, gauss = _shape(t, self.along0, self.across0, dxi, deta)
-            if not jac:
-                return shape, None, None
-            d_resp = np.interp(tau, t.lags, self.slope, left=0.0, right=0.0) / t.speed * gauss
-            return shape, d_resp, shape * across / t.sigma**2
-        empty = np.empty(0)
-        spectral_ops.beam_terms(self.along0, self.across0, dxi * ux + deta * uy,
-                                -dxi * uy + deta * ux, 1.0 / t.speed, float(t.lags[0]),
-                                1.0 / self.step, np.asarray(t.response, float), self.slope,
-                                1.0 / t.sigma**2, self.shape,
-                                self.d_resp if jac else empty, self.d_gauss if jac else empty)
-        return self.shape, (self.d_resp if jac else None), (self.d_gauss if jac else None)
-
-    def model(self, _, a0, dxi, deta, c):
-        return a0 * self._terms(dxi, deta, False)[0] + c
-
-    def jacobian(self, _, a0, dxi, deta, c):
-        ux, uy = self.track.along
-        shape, d_resp, d_gauss = self._terms(dxi, deta, True)
+        shape, tau, across, gauss = _shape(t, self.along0, self.across0, dxi, deta, self.spline)
+        d_resp = np.nan_to_num(self.spline(tau, 1)) / t.speed * gauss
+        d_gauss = shape * across / t.sigma**2
         # d along / d(dxi, deta) = -(ux, uy); d across / d(dxi, deta) = (uy, -ux)
-        d_dxi = a0 * (-ux * d_resp - uy * d_gauss)
-        d_deta = a0 * (-uy * d_resp + ux * d_gauss)
-        return np.stack([shape, d_dxi, d_deta, np.ones_like(shape)], axis=1)
+        return np.stack([shape, a0 * (-ux * d_resp - uy * d_gauss),
+                         a0 * (-uy * d_resp + ux * d_gauss), np.ones_like(shape)], axis=1)
+
+    def normal_equations(self, p):
+        """``(chi2, J^T W J, J^T W r)`` at parameters ``p = (a0, dxi, deta, c)``."""
+        p = np.asarray(p, float)
+        if self.geom is not None:
+            alpha, beta = np.empty((4, 4)), np.empty(4)
+            chi2 = spectral_ops.beam_normal_equations(self.along0, self.across0, self.y, self.w,
+                                                      p, self.geom, self.response, self.slope,
+                                                      alpha, beta)
+            return chi2, alpha, beta
+        resid = self.y - self.model(p)
+        jac = self.jacobian(p)
+        return (float(np.sum(self.w * resid**2)), jac.T @ (jac * self.w[:, None]),
+                jac.T @ (self.w * resid))
+
+    def amplitude(self):
+        """Least-squares ``a0`` of the unshifted beam alone (no offset) and its naive error."""
+        _, alpha, beta = self.normal_equations(np.zeros(4))
+        if alpha[0, 0] <= 0:
+            return np.nan, np.nan
+        return float(beta[0] / alpha[0, 0]), float(alpha[0, 0] ** -0.5)
 
 
-def linear_amplitude(shape, amp, weight):
-    """Weighted least-squares amplitude of ``shape`` in ``amp`` and its naive error."""
-    sw = np.sum(weight * shape**2)
-    if sw <= 0:
-        return np.nan, np.nan
-    return float(np.sum(weight * shape * amp) / sw), float(1.0 / np.sqrt(sw))
+def _beam_samples(track, det_xi, det_eta, amp, sigma_amp):
+    """The window's samples that can carry the beam: valid (``amp != 0``, ``sigma_amp > 0``)
+    and no farther along the scan than the filter's response reaches, plus 3 beam sigmas
+    (beyond, samples only constrain C). Returns a :class:`_BeamModel` on them."""
+    ok = (amp != 0) & (sigma_amp[:, None] > 0)
+    along, across = _offsets(track, det_xi, det_eta)
+    support = track.speed * np.max(np.abs(track.lags[np.abs(track.response) > 0.02]), initial=0.0)
+    ok &= np.abs(along) <= support + 3 * track.sigma
+    sigma = np.broadcast_to(sigma_amp[:, None], amp.shape)[ok]
+    return _BeamModel(track, along[ok], across[ok], amp[ok].astype(float), sigma), ok
 
 
 def fit_candidate(track: Track, det_xi, det_eta, amp, sigma_amp, inflation=1.0, error_scale=1.0):
@@ -149,92 +176,95 @@ def fit_candidate(track: Track, det_xi, det_eta, amp, sigma_amp, inflation=1.0, 
     :data:`FIT_FIELDS`; ``dxi``, ``deta`` are the source's focal-plane shift from the track.
     """
     out = dict.fromkeys(FIT_FIELDS, np.nan)
-    ok = (amp != 0) & (sigma_amp[:, None] > 0)
+    beam, ok = _beam_samples(track, det_xi, det_eta, amp, sigma_amp)
     out.update(n_fit_samples=int(ok.sum()), n_fit_dets=int(ok.any(axis=1).sum()), fit_ok=False)
     if ok.sum() < 8:
         return out
-    along_all, _ = _offsets(track, det_xi, det_eta)
-    support = track.speed * np.max(np.abs(track.lags[np.abs(track.response) > 0.02]), initial=0.0)
-    ok &= np.abs(along_all) <= support + 3 * track.sigma   # beyond, samples only constrain C
-    out.update(n_fit_samples=int(ok.sum()), n_fit_dets=int(ok.any(axis=1).sum()))
-    if ok.sum() < 8:
-        return out
-    along0, across0 = (v[ok] for v in _offsets(track, det_xi, det_eta))
-    y = amp[ok].astype(float)
-    s = np.broadcast_to(sigma_amp[:, None], amp.shape)[ok]
-    beam = _BeamModel(track, along0, across0)
-    model, jacobian = beam.model, beam.jacobian
-
-    a_start, _ = linear_amplitude(model(None, 1.0, 0.0, 0.0, 0.0), y, s**-2)
+    a_start, _ = beam.amplitude()
     reach = 3 * track.sigma
-    popt, pcov = levenberg_marquardt(
-        model, jacobian, y, s, np.array([max(a_start, 1e-3), 0.0, 0.0, 0.0]),
+    popt, pcov, chi2 = levenberg_marquardt(
+        beam.normal_equations, np.array([max(np.nan_to_num(a_start), 1e-3), 0.0, 0.0, 0.0]),
         lower=np.array([0.0, -reach, -reach, -np.inf]), upper=np.array([np.inf, reach, reach, np.inf]))
     if popt is None:
         return out
     errors = np.sqrt(np.diag(pcov)) * inflation * error_scale
-    resid = (y - model(None, *popt)) / s
     out.update(flux=popt[0], flux_err=errors[0], dxi=popt[1], deta=popt[2], dxi_err=errors[1],
                deta_err=errors[2], offset=popt[3], offset_err=errors[3],
                snr_fit=popt[0] / errors[0] if errors[0] > 0 else np.nan,
-               chi2_red=float(np.sum(resid**2) / max(len(y) - 4, 1)),
+               chi2_red=float(chi2 / max(ok.sum() - 4, 1)),
                fit_ok=bool(np.all(np.isfinite(errors))))
     return out
 
 
-def levenberg_marquardt(model, jacobian, y, sigma, p0, lower, upper, max_iter=50,
-                        tol_chi2=1e-3):
-    """Weighted least squares of ``model(None, *p)`` to ``y`` with parameters kept in
-    ``[lower, upper]`` (clipped after each step). Stops when a step lowers chi^2 by less than
-    ``tol_chi2`` (absolute: a change of 1 moves a parameter by one sigma). Returns
-    ``(p, covariance)`` with the covariance ``(J^T W J)^-1`` at the solution, or
-    ``(None, None)`` if it is singular."""
-    w = sigma**-2
+def _held(p, lower, upper, beta):
+    """Parameters at a bound that the chi^2 gradient pushes outwards (``beta`` is minus half
+    the gradient): they stay at the bound for the next step."""
+    return ((p <= lower) & (beta < 0)) | ((p >= upper) & (beta > 0))
+
+
+def _solve(matrix, beta, free):
+    """Solution of ``matrix x = beta`` for the ``free`` parameters, 0 for the others."""
+    x = np.zeros_like(beta)
+    x[free] = np.linalg.solve(matrix[np.ix_(free, free)], beta[free])
+    return x
+
+
+def levenberg_marquardt(normal_equations, p0, lower, upper, max_iter=50, tol_chi2=1e-3):
+    """Weighted least squares with parameters kept in ``[lower, upper]``.
+
+    ``normal_equations(p)`` returns ``(chi2, J^T W J, J^T W r)`` at ``p``. Parameters at a
+    bound that the gradient pushes outwards are held there for the step (a projected step, so
+    a bound does not stall the fit), others are clipped to the bounds. Stops when a step
+    lowers chi^2, or an undamped (Gauss-Newton) step would, by less than ``tol_chi2``
+    (absolute: a change of 1 moves a parameter by one sigma). Returns
+    ``(p, covariance, chi2)`` with the covariance ``(J^T W J)^-1`` at the solution, or
+    ``(None, None, None)`` if it is singular."""
     p = np.clip(np.asarray(p0, float), lower, upper)
-    resid = y - model(None, *p)
-    chi2 = np.sum(w * resid**2)
+    chi2, alpha, beta = normal_equations(p)
     damping = 1e-3
     for _ in range(max_iter):
-        jac = jacobian(None, *p)
-        alpha = jac.T @ (jac * w[:, None])
-        beta = jac.T @ (w * resid)
+        free = ~_held(p, lower, upper, beta)
+        try:
+            if not free.any() or beta @ _solve(alpha, beta, free) < tol_chi2:
+                break                 # the (bounded) minimum is nearer than tol_chi2
+        except np.linalg.LinAlgError:
+            pass
         improved = converged = False
         while damping < 1e10:
             try:
-                step = np.linalg.solve(alpha + damping * np.diag(np.diag(alpha)), beta)
+                step = _solve(alpha + damping * np.diag(np.diag(alpha)), beta, free)
             except np.linalg.LinAlgError:
                 damping *= 10
                 continue
             trial = np.clip(p + step, lower, upper)
-            resid_trial = y - model(None, *trial)
-            chi2_trial = np.sum(w * resid_trial**2)
+            chi2_trial, alpha_trial, beta_trial = normal_equations(trial)
             if chi2_trial <= chi2:
                 improved, converged = True, chi2 - chi2_trial < tol_chi2
-                p, resid, chi2, damping = trial, resid_trial, chi2_trial, max(damping / 10, 1e-12)
+                p, chi2, alpha, beta = trial, chi2_trial, alpha_trial, beta_trial
+                damping = max(damping / 10, 1e-12)
                 break
             damping *= 10
         if not improved or converged:
             break
-    jac = jacobian(None, *p)
     try:
-        cov = np.linalg.inv(jac.T @ (jac * w[:, None]))
+        cov = np.linalg.inv(alpha)
     except np.linalg.LinAlgError:
-        return None, None
-    return p, cov
+        return None, None, None
+    return p, cov, chi2
 
 
-def null_scatter(tracks, det_xi, det_eta, amps, sigma_amp, inflation=1.0):
+def null_scatter(windows, inflation=1.0):
     """Robust spread of ``A / sigma_A`` for amplitude fits at fixed (null) positions.
 
-    ``tracks`` and ``amps`` are windows centred on random positions away from any candidate;
-    the result is the factor by which the naive, inflated errors must grow to describe the
-    actual noise (1 for independent detectors).
+    ``windows``: ``(track, det_xi, det_eta, amp, sigma_amp)`` per random position away from
+    any candidate, as :func:`fit_candidate` takes them; the result is the factor by which the
+    naive, inflated errors must grow to describe the actual noise (1 for independent
+    detectors).
     """
     ratios = []
-    for track, amp in zip(tracks, amps):
-        shape = beam_shape(track, det_xi, det_eta)
-        ok = (amp != 0) & (sigma_amp[:, None] > 0)
-        a, err = linear_amplitude(shape[ok], amp[ok], (sigma_amp[:, None] ** -2 * ok)[ok])
+    for track, det_xi, det_eta, amp, sigma_amp in windows:
+        beam, ok = _beam_samples(track, det_xi, det_eta, amp, sigma_amp)
+        a, err = beam.amplitude() if ok.any() else (np.nan, np.nan)
         if np.isfinite(a):
             ratios.append(a / (err * inflation))
     if len(ratios) < 10:

@@ -414,7 +414,7 @@ class TransientFind(_Preprocess):
         n_buf = int(round(self.turnaround_buffer * (aman.samps.count - 1)
                           / (aman.timestamps[-1] - aman.timestamps[0])))
         if n_buf and in_ta.any():
-            in_ta = ndimage.binary_dilation(in_ta, np.ones(2 * n_buf + 1, bool))
+            in_ta = ndimage.maximum_filter1d(in_ta.view(np.uint8), 2 * n_buf + 1).astype(bool)
         return scan_segments(in_ta, np.asarray(aman.boresight.az))
 
     def calc_and_save(self, aman, proc_aman):
@@ -429,8 +429,8 @@ class TransientFind(_Preprocess):
             fwhm = beam_fwhm([band], self.fwhm_table, describe(aman))[0]
             eps = self.find_cfg.eps or fwhm_to_sigma_fwhm(fwhm)
             radec = lambda d, s, dets=dets: sample_radec(aman, dets[d], s)
-            c, h = find_candidates(aman.transient_snr[dets], aman.timestamps, scan, directions,
-                                   radec, eps, self.find_cfg)
+            c, h = find_candidates(aman.transient_snr, aman.timestamps, scan, directions,
+                                   radec, eps, self.find_cfg, rows=dets)
             c["peak_det"], h["det"] = dets[c["peak_det"].astype(int)], dets[h["det"].astype(int)]
             h["cand"] = h["cand"] + len(cands.get("scan", []))
             c["bandpass"] = np.full(len(c["scan"]), band)
@@ -645,26 +645,37 @@ class TransientFit(_Preprocess):
         return q, Track(xi, eta, velocity / speed, speed, 0.0, np.asarray(summary.lag),
                         np.asarray(summary.response))
 
+    def _fit_window(self, aman, ra, dec, lo, hi, dets):
+        """The source's track over samples ``lo:hi`` and the live detectors ``dets`` that pass
+        within ``radius`` and ``cross_scan_sigma`` beam sigmas of it: ``(q, track, dets)``."""
+        summary = aman.transient_filter
+        q, track = self._track(aman, ra, dec, lo, hi)
+        mid = (hi - lo) // 2
+        xi, eta = np.asarray(aman.focal_plane.xi)[dets], np.asarray(aman.focal_plane.eta)[dets]
+        near = pointing.angular_distance_xieta(xi, eta, track.xi[mid],
+                                               track.eta[mid]) <= self.fit_cfg.radius
+        track.sigma = float(np.median(np.asarray(summary.beam_sigma)[dets])) if len(dets) else 1.0
+        across = -(xi - track.xi[mid]) * track.along[1] + (eta - track.eta[mid]) * track.along[0]
+        return q, track, dets[near & (np.abs(across) <= self.fit_cfg.cross_scan_sigma * track.sigma)]
+
+    @staticmethod
+    def _window_data(aman, track, dets, lo, hi):
+        """``(track, det_xi, det_eta, amp, sigma_amp)`` of detectors ``dets``, samples ``lo:hi``."""
+        return (track, np.asarray(aman.focal_plane.xi)[dets], np.asarray(aman.focal_plane.eta)[dets],
+                amplitude(aman, dets, lo, hi), np.asarray(aman.transient_filter.sigma_amp)[dets])
+
     def _fit_one(self, aman, cands, c, band_dets, error_scale):
         summary = aman.transient_filter
         lo, hi = self._window(aman, cands["t_median"][c])
         if hi - lo < 4:
             return {}
-        q, track = self._track(aman, cands["ra"][c], cands["dec"][c], lo, hi)
-        dets = band_dets[~np.asarray(summary.dead)[band_dets]]
-        mid = (hi - lo) // 2
-        xi, eta = np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta)
-        near = pointing.angular_distance_xieta(xi[dets], eta[dets], track.xi[mid],
-                                               track.eta[mid]) <= self.fit_cfg.radius
-        sigma = float(np.median(np.asarray(summary.beam_sigma)[dets])) if len(dets) else 1.0
-        across = -(xi[dets] - track.xi[mid]) * track.along[1] + (eta[dets] - track.eta[mid]) * track.along[0]
-        dets = dets[near & (np.abs(across) <= self.fit_cfg.cross_scan_sigma * sigma)]
-        track.sigma = sigma
-        res = fit_candidate(track, xi[dets], eta[dets], amplitude(aman, dets, lo, hi),
-                            np.asarray(summary.sigma_amp)[dets],
+        live = band_dets[~np.asarray(summary.dead)[band_dets]]
+        q, track, dets = self._fit_window(aman, cands["ra"][c], cands["dec"][c], lo, hi, live)
+        res = fit_candidate(*self._window_data(aman, track, dets, lo, hi),
                             float(np.median(np.asarray(summary.fit_inflation))), error_scale)
         res["error_scale"] = error_scale
         if res["fit_ok"]:
+            mid = (hi - lo) // 2
             res.update(self._to_sky(q[mid:mid + 1], track.xi[mid], track.eta[mid], res))
         return res
 
@@ -700,17 +711,12 @@ class TransientFit(_Preprocess):
         centers = centers[far][: self.fit_cfg.n_null]
         picks = rng.choice(dets, size=len(centers))
         ra, dec = sample_radec(aman, picks, centers)
-        tracks, amps = [], []
-        xi, eta = np.asarray(aman.focal_plane.xi)[dets], np.asarray(aman.focal_plane.eta)[dets]
-        sigma = float(np.median(np.asarray(summary.beam_sigma)[dets]))
+        windows = []
         for k, s in enumerate(centers):
             lo, hi = s - n_win, s + n_win + 1
-            _, track = self._track(aman, ra[k], dec[k], lo, hi)
-            track.sigma = sigma
-            tracks.append(track)
-            amps.append(amplitude(aman, dets, lo, hi))
-        return null_scatter(tracks, xi, eta, amps, np.asarray(summary.sigma_amp)[dets],
-                            float(np.median(np.asarray(summary.fit_inflation))))
+            _, track, near = self._fit_window(aman, ra[k], dec[k], lo, hi, dets)
+            windows.append(self._window_data(aman, track, near, lo, hi))
+        return null_scatter(windows, float(np.median(np.asarray(summary.fit_inflation))))
 
     def save(self, proc_aman, aman, result):
         if self.save_cfgs:

@@ -117,29 +117,74 @@ def interpolate_runs(x, bad):
 
 
 @njit(cache=True, nogil=True, fastmath=True)
-def beam_terms(along0, across0, shift_along, shift_across, inv_speed, lag0, inv_dlag, response,
-               slope, inv_sigma2, shape, d_resp, d_gauss):
-    """The fit's beam model at every sample in one pass (see :mod:`so_transients.fit`).
+def beam_normal_equations(along0, across0, y, w, params, geom, response, slope, alpha, beta):
+    """chi^2 of the fit's beam model ``a0 B + c`` (see :mod:`so_transients.fit`) in one pass,
+    and, when ``alpha`` is (4, 4), the normal equations ``alpha = J^T W J``, ``beta = J^T W r``
+    of the parameters ``(a0, dxi, deta, c)``, without forming the Jacobian.
 
-    ``response``/``slope`` are sampled on uniform lags ``lag0 + k / inv_dlag`` and linearly
-    interpolated (zero outside, as ``np.interp(..., left=0, right=0)``). Fills ``shape`` =
-    response(tau) x gauss(across) and, when ``d_resp`` is non-empty, the derivative terms
-    ``d_resp`` = slope(tau) / speed x gauss and ``d_gauss`` = shape x across / sigma^2.
+    ``params`` = (a0, dxi, deta, c); ``geom`` = (ux, uy, 1 / speed, lag0, 1 / dlag,
+    1 / sigma^2): the drift direction, the uniform lags ``lag0 + k dlag`` on which
+    ``response`` and its derivative ``slope`` are sampled (cubic Hermite interpolation, zero
+    outside, as :func:`so_transients.fit.response_spline`) and the beam width. Returns chi^2.
     """
+    a0, dxi, deta, c = params[0], params[1], params[2], params[3]
+    ux, uy, inv_speed, lag0, inv_dlag, inv_sigma2 = (geom[0], geom[1], geom[2], geom[3],
+                                                      geom[4], geom[5])
+    shift_along = dxi * ux + deta * uy
+    shift_across = -dxi * uy + deta * ux
     m = len(response)
-    jac = len(d_resp) > 0
+    dlag = 1.0 / inv_dlag
+    # the 10 distinct entries of J^T W J and the 4 of J^T W r, as scalars the loop keeps in
+    # registers; J = (shape, d/d dxi, d/d deta, 1)
+    s00 = s01 = s02 = s03 = s11 = s12 = s13 = s22 = s23 = s33 = 0.0
+    b0 = b1 = b2 = b3 = 0.0
+    chi2 = 0.0
     for k in range(len(along0)):
         across = across0[k] - shift_across
         x = ((along0[k] - shift_along) * inv_speed - lag0) * inv_dlag
         r = 0.0
         s = 0.0
         if 0.0 <= x <= m - 1:
+            # cubic Hermite interpolation on the response and its slope: r and s = dr/dtau
             i = min(int(x), m - 2)
             f = x - i
-            r = response[i] + f * (response[i + 1] - response[i])
-            s = slope[i] + f * (slope[i + 1] - slope[i])
+            f2 = f * f
+            f3 = f2 * f
+            r0, r1 = response[i], response[i + 1]
+            t0, t1 = slope[i] * dlag, slope[i + 1] * dlag
+            r = ((2 * f3 - 3 * f2 + 1) * r0 + (f3 - 2 * f2 + f) * t0
+                 + (3 * f2 - 2 * f3) * r1 + (f3 - f2) * t1)
+            s = ((6 * f2 - 6 * f) * (r0 - r1) + (3 * f2 - 4 * f + 1) * t0
+                 + (3 * f2 - 2 * f) * t1) * inv_dlag
         g = np.exp(-0.5 * across * across * inv_sigma2)
-        shape[k] = r * g
-        if jac:
-            d_resp[k] = s * inv_speed * g
-            d_gauss[k] = r * g * across * inv_sigma2
+        shape = r * g
+        wk = w[k]
+        resid = y[k] - a0 * shape - c
+        chi2 += wk * resid * resid
+        # d along / d(dxi, deta) = -(ux, uy); d across / d(dxi, deta) = (uy, -ux)
+        d_resp = s * inv_speed * g
+        d_gauss = shape * across * inv_sigma2
+        j1 = a0 * (-ux * d_resp - uy * d_gauss)
+        j2 = a0 * (-uy * d_resp + ux * d_gauss)
+        ws, w1, w2 = wk * shape, wk * j1, wk * j2
+        s00 += ws * shape
+        s01 += ws * j1
+        s02 += ws * j2
+        s03 += ws
+        s11 += w1 * j1
+        s12 += w1 * j2
+        s13 += w1
+        s22 += w2 * j2
+        s23 += w2
+        s33 += wk
+        b0 += ws * resid
+        b1 += w1 * resid
+        b2 += w2 * resid
+        b3 += wk * resid
+    if alpha.shape[0] == 4:
+        alpha[0, 0], alpha[0, 1], alpha[0, 2], alpha[0, 3] = s00, s01, s02, s03
+        alpha[1, 0], alpha[1, 1], alpha[1, 2], alpha[1, 3] = s01, s11, s12, s13
+        alpha[2, 0], alpha[2, 1], alpha[2, 2], alpha[2, 3] = s02, s12, s22, s23
+        alpha[3, 0], alpha[3, 1], alpha[3, 2], alpha[3, 3] = s03, s13, s23, s33
+        beta[0], beta[1], beta[2], beta[3] = b0, b1, b2, b3
+    return chi2

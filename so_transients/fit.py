@@ -6,8 +6,8 @@ All samples of the group within ``window`` seconds of the candidate's median tim
     A(theta) = A0 B(theta - theta_src) + C
 
 on the amplitude timestream, by a bounded Levenberg-Marquardt fit (:func:`levenberg_marquardt`:
-four parameters, so each step solves 4 x 4 normal equations instead of decomposing the
-Jacobian of every sample). Samples farther along the scan
+four parameters, so each trial is one compiled pass over the samples that returns chi^2 and
+the 4 x 4 normal equations, without forming the Jacobian). Samples farther along the scan
 than the filter's response reaches (plus the allowed position shift) carry no beam signal and
 are left out. The fit works in focal-plane
 coordinates: over one second the sky position ``theta_src`` traces a known track across the
@@ -15,7 +15,8 @@ focal plane (one quaternion per sample), and a shift of the source on the sky is
 shift ``(dxi, deta)`` of that track, so every sample's offset from the source is exact without
 computing RA/Dec per sample. ``B`` is the Gaussian beam as it appears after the matched filter:
 across the scan the beam itself, ``exp(-d^2 / 2 sigma^2)``; along the scan the filter's
-response to a crossing (``response`` over ``lags``), at the time offset ``d_along / v``.
+response to a crossing (``response`` over ``lags``, interpolated smoothly by
+:func:`response_spline`), at the time offset ``d_along / v``.
 
 Errors. The fit covariance treats samples as independent, which they are not: filtered samples
 are correlated over the response width (``inflation``, see

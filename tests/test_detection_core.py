@@ -215,7 +215,7 @@ def test_catalogue_slots_survive_concatenation_of_groups():
 
 
 def test_compiled_normal_equations_equal_the_numpy_ones():
-    """The fit's one-pass kernel (uniform lags) and the np.interp + Jacobian path agree."""
+    """The fit's one-pass kernel (uniform lags) and the numpy spline + Jacobian path agree."""
     from so_transients.fit import _BeamModel
 
     rng = np.random.default_rng(0)

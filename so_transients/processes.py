@@ -189,6 +189,14 @@ def _dict_to_aman(aman_axes, columns, axis_name, n):
     return out
 
 
+def _set_columns(sub, columns, axis_name):
+    """Add (or replace) ``columns`` on axis ``axis_name`` of ``sub`` in one merge (a wrap per
+    column would restrict every field of ``sub`` once per column)."""
+    for name in [k for k in columns if k in sub._fields]:
+        sub.move(name, None)
+    sub.merge(_dict_to_aman([], columns, axis_name, sub[axis_name].count))
+
+
 def _per_det(aman, columns):
     out = core.AxisManager(aman.dets)
     for name, values in columns.items():
@@ -540,10 +548,7 @@ class TransientCuts(_Preprocess):
         if n == 0:
             result = apply_cuts(cands, hits, xi, eta, gamma, aman.timestamps, drift, 1.0,
                                 self.cuts_cfg)
-        for k, v in result.items():
-            if k in aman.transient_candidates._fields:
-                aman.transient_candidates.move(k, None)
-            aman.transient_candidates.wrap(k, v, [(0, CAND_AXIS)])
+        _set_columns(aman.transient_candidates, result, CAND_AXIS)
         self.save(proc_aman, aman, result)
         return aman, proc_aman
 
@@ -622,11 +627,9 @@ class TransientFit(_Preprocess):
                               dtype=bool if k == "fit_ok" else float) for k in fields}
         result["detected"] = result["fit_ok"] & (np.nan_to_num(result["snr_fit"])
                                                  >= self.fit_cfg.min_snr)
-        for k, v in result.items():
-            name = f"fit_{k}" if k in ("ra", "dec") else k
-            if name in aman.transient_candidates._fields:
-                aman.transient_candidates.move(name, None)
-            aman.transient_candidates.wrap(name, v, [(0, CAND_AXIS)])
+        _set_columns(aman.transient_candidates,
+                     {(f"fit_{k}" if k in ("ra", "dec") else k): v for k, v in result.items()},
+                     CAND_AXIS)
         self.save(proc_aman, aman, result)
         return aman, proc_aman
 

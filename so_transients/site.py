@@ -58,6 +58,17 @@ def write_site_config(dataset, path=None, template=TEMPLATE, overrides=None) -> 
     return path
 
 
+#: Variables an MPI launcher (MPICH's hydra, Open MPI, PMIx) sets for its ranks.
+MPI_LAUNCHER_PREFIXES = ("PMI_", "PMIX_", "OMPI_", "HYDRA_", "MPI_LOCALNRANKS",
+                         "MPI_LOCALRANKID")
+
+
+def standalone_env():
+    """This process's environment without its MPI launcher's variables: a subprocess started
+    from an MPI rank would otherwise try to join that rank's job and fail at MPI start-up."""
+    return {k: v for k, v in os.environ.items() if not k.startswith(MPI_LAUNCHER_PREFIXES)}
+
+
 def run_site_pipeline(config_path, nproc=1, extra_args=(), check=True):
     """``python -m sotodlib.site_pipeline.preprocess_tod CONFIG`` in a subprocess.
 
@@ -65,9 +76,10 @@ def run_site_pipeline(config_path, nproc=1, extra_args=(), check=True):
     working directory.
 
     The site pipeline logs failed groups to ``errlog.txt`` next to the archive index and still
-    exits 0, so callers must inspect the archive (see :mod:`so_transients.results`).
+    exits 0, so callers must inspect the archive (see :mod:`so_transients.results`). It runs
+    as its own job even when called from an MPI rank (:func:`standalone_env`).
     """
-    env = dict(os.environ)
+    env = standalone_env()
     env.setdefault("OMP_WAIT_POLICY", "passive")
     env.setdefault("OMP_NUM_THREADS", "1")
     archive_dir = archive_index(config_path).parent

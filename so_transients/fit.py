@@ -28,6 +28,7 @@ random positions away from candidates, and the robust spread of ``A / sigma_A`` 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.interpolate import CubicHermiteSpline
@@ -76,14 +77,19 @@ def beam_shape(track: Track, det_xi, det_eta, dxi=0.0, deta=0.0):
     return _shape(track, along, across, dxi, deta)[0]
 
 
+def response_slope(track: Track):
+    """d response / d lag at each of ``track.lags``."""
+    response = np.asarray(track.response, float)
+    return np.gradient(response, track.lags) if len(response) > 1 else np.zeros_like(response)
+
+
 def response_spline(track: Track):
     """The filter's response as a function of time offset: the cubic Hermite interpolant of
-    ``track.response`` with the slopes of its samples, zero outside ``track.lags``. Unlike
+    ``track.response`` with :func:`response_slope`, NaN outside ``track.lags``. Unlike
     linear interpolation it has a continuous derivative, so chi^2 varies smoothly with the
     source position (with kinks at every lag, a fit's steps stall between them)."""
-    lags, response = np.asarray(track.lags, float), np.asarray(track.response, float)
-    slope = np.gradient(response, lags) if len(lags) > 1 else np.zeros_like(response)
-    return CubicHermiteSpline(lags, response, slope, extrapolate=False), slope
+    return CubicHermiteSpline(np.asarray(track.lags, float), np.asarray(track.response, float),
+                              response_slope(track), extrapolate=False)
 
 
 def _shape(track, along0, across0, dxi, deta, spline=None):
@@ -91,7 +97,7 @@ def _shape(track, along0, across0, dxi, deta, spline=None):
     along = along0 - (dxi * ux + deta * uy)
     across = across0 - (-dxi * uy + deta * ux)
     tau = along / track.speed
-    spline = response_spline(track)[0] if spline is None else spline
+    spline = response_spline(track) if spline is None else spline
     resp = np.nan_to_num(spline(tau))
     gauss = np.exp(-0.5 * (across / track.sigma) ** 2)
     return resp * gauss, tau, across, gauss
@@ -114,11 +120,16 @@ class _BeamModel:
         self.track, self.along0, self.across0 = track, along0, across0
         self.y, self.w = y, sigma**-2.0
         self.response = np.asarray(track.response, float)
-        self.spline, self.slope = response_spline(track)
+        self.slope = response_slope(track)
         step = _uniform_step(np.asarray(track.lags))
         ux, uy = track.along
         self.geom = None if step is None else np.array(
             [ux, uy, 1.0 / track.speed, float(track.lags[0]), 1.0 / step, track.sigma**-2.0])
+
+    @cached_property
+    def spline(self):
+        """The numpy path's response interpolant (the compiled pass interpolates itself)."""
+        return response_spline(self.track)
 
     def model(self, p):
         a0, dxi, deta, c = p

@@ -119,8 +119,8 @@ def interpolate_runs(x, bad):
 @njit(cache=True, nogil=True, fastmath=True)
 def beam_normal_equations(along0, across0, y, w, params, geom, response, slope, alpha, beta):
     """chi^2 of the fit's beam model ``a0 B + c`` (see :mod:`so_transients.fit`) in one pass,
-    and, when ``alpha`` is (4, 4), the normal equations ``alpha = J^T W J``, ``beta = J^T W r``
-    of the parameters ``(a0, dxi, deta, c)``, without forming the Jacobian.
+    and the normal equations ``alpha = J^T W J`` (4, 4) and ``beta = J^T W r`` (4,) of the
+    parameters ``(a0, dxi, deta, c)``, filled in place, without forming the Jacobian.
 
     ``params`` = (a0, dxi, deta, c); ``geom`` = (ux, uy, 1 / speed, lag0, 1 / dlag,
     1 / sigma^2): the drift direction, the uniform lags ``lag0 + k dlag`` on which
@@ -181,10 +181,9 @@ def beam_normal_equations(along0, across0, y, w, params, geom, response, slope, 
         b1 += w1 * resid
         b2 += w2 * resid
         b3 += wk * resid
-    if alpha.shape[0] == 4:
-        alpha[0, 0], alpha[0, 1], alpha[0, 2], alpha[0, 3] = s00, s01, s02, s03
-        alpha[1, 0], alpha[1, 1], alpha[1, 2], alpha[1, 3] = s01, s11, s12, s13
-        alpha[2, 0], alpha[2, 1], alpha[2, 2], alpha[2, 3] = s02, s12, s22, s23
-        alpha[3, 0], alpha[3, 1], alpha[3, 2], alpha[3, 3] = s03, s13, s23, s33
-        beta[0], beta[1], beta[2], beta[3] = b0, b1, b2, b3
+    alpha[0, 0], alpha[0, 1], alpha[0, 2], alpha[0, 3] = s00, s01, s02, s03
+    alpha[1, 0], alpha[1, 1], alpha[1, 2], alpha[1, 3] = s01, s11, s12, s13
+    alpha[2, 0], alpha[2, 1], alpha[2, 2], alpha[2, 3] = s02, s12, s22, s23
+    alpha[3, 0], alpha[3, 1], alpha[3, 2], alpha[3, 3] = s03, s13, s23, s33
+    beta[0], beta[1], beta[2], beta[3] = b0, b1, b2, b3
     return chi2

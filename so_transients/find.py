@@ -16,7 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from sklearn.cluster import DBSCAN
+
+from .dbscan import dbscan_labels
 
 log = logging.getLogger(__name__)
 
@@ -130,8 +131,7 @@ def find_candidates(snr, timestamps, scan, directions, radec, eps, cfg: FindConf
         sel = np.flatnonzero(scan[samps] == k)
         if len(sel) < cfg.min_cluster_samples:
             continue
-        labels = DBSCAN(eps=eps, min_samples=cfg.dbscan_min_samples).fit(
-            _tangent_plane(ra[sel], dec[sel])).labels_
+        labels = dbscan_labels(_tangent_plane(ra[sel], dec[sel]), eps, cfg.dbscan_min_samples)
         for label in np.unique(labels[labels >= 0]):
             members = sel[labels == label]
             if (len(members) < cfg.min_cluster_samples

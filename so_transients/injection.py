@@ -87,14 +87,20 @@ class NoiseModel:
         return self._responses[n]
 
 
+def fft_length(n):
+    """The smallest 2^k or 3 x 2^k that is >= ``n`` (both fast for FFTs)."""
+    power = 1 << max(int(np.ceil(np.log2(max(n, 1)))), 0)
+    return min(power, 3 * power // 4) if 3 * power // 4 >= n else power
+
+
 def filtered_snr(model: NoiseModel, dets, signal, pad=10.0):
     """S/N timestream (len(dets), m) that the noise model's filter makes of ``signal``
     (len(dets), m), a window of injected signal only, zero-padded by at least ``pad`` seconds
-    (FFT lengths are powers of two, so that few responses need computing)."""
+    on each side (FFT lengths are 2^k or 3 x 2^k, so that few responses need computing)."""
     signal = np.asarray(signal, np.float32)
     dets = np.asarray(dets, int)
     m = signal.shape[1]
-    n = 1 << int(np.ceil(np.log2(m + 2 * int(np.ceil(pad * model.sample_rate)))))
+    n = fft_length(m + 2 * int(np.ceil(pad * model.sample_rate)))
     spec = scipy.fft.rfft(signal, n=n, axis=1)
     spec *= model.snr_response(n)[dets]
     return scipy.fft.irfft(spec, n=n, axis=1)[:, :m]

@@ -11,10 +11,11 @@ from __future__ import annotations
 import numpy as np
 from astropy import units as u
 from astropy.table import Table
+from scipy.spatial import cKDTree
 
 from .bands import fwhm_to_sigma
 from .lightcurve import active_window, flare_flux
-from .pointing import angular_distance_xieta, source_in_focal_plane
+from .pointing import angular_distance_xieta, source_near
 
 ARCMIN = np.pi / (180 * 60)
 
@@ -30,16 +31,14 @@ def crossing_times(timestamps, bore_q, det_xi, det_eta, flare, fwhm, min_gap=2.0
     lo, hi = np.searchsorted(timestamps, [start, stop])
     if hi <= lo:
         return np.zeros(0)
-    xi, eta = source_in_focal_plane(bore_q[lo:hi], flare["ra"], flare["dec"])
     centre = np.array([det_xi.mean(), det_eta.mean()])
     radius = np.hypot(det_xi - centre[0], det_eta - centre[1]).max() + fwhm
-    near = np.flatnonzero(np.hypot(xi - centre[0], eta - centre[1]) < radius)
+    near, xi, eta = source_near(bore_q[lo:hi], flare["ra"], flare["dec"], centre, radius)
     if not len(near):
         return np.zeros(0)
-    dist = np.zeros(len(near))
-    for part in np.array_split(np.arange(len(near)), max(1, len(near) // 256)):
-        dist[part] = angular_distance_xieta(det_xi[:, None], det_eta[:, None], xi[near[part]][None],
-                                            eta[near[part]][None]).min(axis=0)
+    # the nearest detector in the (flat) focal plane, then its exact angular distance
+    _, nearest = cKDTree(np.c_[det_xi, det_eta]).query(np.c_[xi, eta])
+    dist = angular_distance_xieta(det_xi[nearest], det_eta[nearest], xi, eta)
     close = near[dist < fwhm]
     if not len(close):
         return np.zeros(0)

@@ -9,7 +9,9 @@ operations they use:
 * :func:`radec_of_samples` -- RA/Dec of chosen (detector, sample) pairs only;
 * :func:`source_in_focal_plane` -- where a sky position falls in focal-plane coordinates
   (xi, eta) at chosen samples, from which the distance of every detector to it follows exactly
-  (:func:`angular_distance_xieta`).
+  (:func:`angular_distance_xieta`);
+* :func:`source_near` -- the same, only for the samples where the source is near a detector
+  group (coarse-to-fine: a source far from the group is never tracked sample by sample).
 
 All angles are radians; times are ctime (seconds since 1970).
 """
@@ -70,6 +72,38 @@ def source_in_focal_plane(bore_q, ra, dec):
     rel = ~quat.G3VectorQuat(np.ascontiguousarray(bore_q)) * q_src
     xi, eta, _ = quat.decompose_xieta(rel)
     return np.asarray(xi), np.asarray(eta)
+
+
+def source_near(bore_q, ra, dec, center, reach, stride=16):
+    """Samples where a fixed sky position lies within ``reach`` (radians) of ``center`` (xi, eta)
+    in the focal plane, and its (xi, eta) there: ``(samples, xi, eta)``.
+
+    Exact, and equal to masking :func:`source_in_focal_plane` on every sample, but the track is
+    first computed every ``stride`` samples; only the stretches between coarse samples closer
+    than ``reach`` plus twice the largest coarse step (the most the source can move between
+    them) are then computed sample by sample.
+    """
+    n = len(bore_q)
+    if n == 0:
+        return np.zeros(0, int), np.zeros(0), np.zeros(0)
+    coarse = np.unique(np.r_[np.arange(0, n, max(int(stride), 1)), n - 1])
+    xi, eta = source_in_focal_plane(bore_q[coarse], ra, dec)
+    step = (float(np.max(angular_distance_xieta(xi[:-1], eta[:-1], xi[1:], eta[1:])))
+            if len(coarse) > 1 else 0.0)
+    hit = angular_distance_xieta(xi, eta, center[0], center[1]) < reach + 2 * step
+    spans = np.flatnonzero(hit[:-1] | hit[1:])
+    if len(coarse) == 1:
+        spans = np.flatnonzero(hit)
+        coarse = np.r_[coarse, coarse]
+    mark = np.zeros(n + 1, int)
+    np.add.at(mark, coarse[spans], 1)
+    np.add.at(mark, coarse[spans + 1] + 1, -1)
+    samples = np.flatnonzero(np.cumsum(mark[:-1]) > 0)
+    if not len(samples):
+        return samples, np.zeros(0), np.zeros(0)
+    xi, eta = source_in_focal_plane(bore_q[samples], ra, dec)
+    near = angular_distance_xieta(xi, eta, center[0], center[1]) < reach
+    return samples[near], xi[near], eta[near]
 
 
 def _unit_vectors(xi, eta):

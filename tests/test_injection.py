@@ -1,7 +1,7 @@
 """The fast injection path agrees with filtering the injected data in full."""
 import numpy as np
 
-from so_transients.injection import NoiseModel, filtered_snr
+from so_transients.injection import NoiseModel, fft_length, filtered_snr
 from so_transients.matched_filter import FilterConfig, matched_filter
 from test_matched_filter import FS, SIGMA_T, red_noise
 
@@ -29,3 +29,9 @@ def test_windowed_injection_matches_the_full_filter():
     bias = peak**2 / (13 * 600)
     assert np.all(np.abs(fast.max(axis=1) - peak) < peak * (bias + 0.005) + 0.03)
     assert np.max(np.abs(fast - slow)) < 0.1
+
+
+def test_fft_lengths_are_the_smallest_fast_size():
+    fast = sorted({m * 2**k for m in (1, 3) for k in range(16)})
+    for n in range(1, 20000, 7):
+        assert fft_length(n) == min(f for f in fast if f >= n)

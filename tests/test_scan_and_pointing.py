@@ -83,3 +83,17 @@ def test_bad_scan_parameters():
         ScanPattern(el=95)
     with pytest.raises(ValueError, match="shorter than one turnaround"):
         ScanPattern(sweep_time=2.0)
+
+
+@pytest.mark.parametrize("xi0, reach_deg", [(0.5, 1.0), (0.5, 0.05), (25.0, 1.0)])
+def test_source_near_equals_tracking_every_sample(scan, xi0, reach_deg):
+    """Coarse-to-fine tracking finds exactly the samples a full track does, turnarounds included."""
+    *_, q = scan
+    ra, dec = pointing.radec_of_samples(q, np.radians([xi0]), [0.0], [0], [30000])
+    reach = np.radians(reach_deg)
+    xi, eta = pointing.source_in_focal_plane(q, ra[0], dec[0])
+    expect = np.flatnonzero(pointing.angular_distance_xieta(xi, eta, 0.0, 0.0) < reach)
+    samples, sxi, seta = pointing.source_near(q, ra[0], dec[0], (0.0, 0.0), reach)
+    assert np.array_equal(samples, expect)
+    assert np.array_equal(sxi, xi[expect]) and np.array_equal(seta, eta[expect])
+    assert (len(expect) > 0) == (xi0 < 10)

@@ -20,7 +20,7 @@ from astropy import units as u
 from astropy.table import Table
 
 from ..lightcurve import active_window, flare_flux
-from ..pointing import angular_distance_xieta, radec_of_samples, source_in_focal_plane
+from ..pointing import angular_distance_xieta, radec_of_samples, source_near
 
 #: Beam is evaluated out to this many sigma.
 BEAM_REACH_SIGMA = 6.0
@@ -154,17 +154,16 @@ def source_crossings(timestamps, bore_q, sources, center, radius, sigma, steady=
             lo, hi = np.searchsorted(timestamps, [start, stop], side="left")
         if hi <= lo:
             continue
-        xi, eta = source_in_focal_plane(bore_q[lo:hi], src["ra"], src["dec"])
-        near = angular_distance_xieta(xi, eta, center[0], center[1]) < reach
-        if not near.any():
+        samples, xi, eta = source_near(bore_q[lo:hi], src["ra"], src["dec"], center, reach)
+        if not len(samples):
             continue
-        samples = lo + np.flatnonzero(near)
+        samples = samples + lo
         if steady:
             flux = np.full(len(samples), float(src["flux"]))
         else:
             flux = flare_flux(timestamps[samples], src["t_peak"], src["s_peak"], src["t_rise"],
                               src["t_decay"], src["eta_rise"], src["eta_decay"])
-        crossings.append(SourceCrossing(samples, xi[near], eta[near], flux))
+        crossings.append(SourceCrossing(samples, xi, eta, flux))
     return crossings
 
 

@@ -23,11 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.fft
-from scipy import ndimage, signal as sps
-
-#: Largest number of interpolated points per call (bounds temporary memory to ~100 MB).
-MAX_POINTS_PER_CALL = 4_000_000
-
+from numba import njit
+from scipy import signal as sps
 
 def _von_karman_filter(ny, nx, pixel, outer_scale, aperture):
     ky = scipy.fft.fftfreq(ny, d=pixel)[:, None]
@@ -73,22 +70,37 @@ class AtmosphereScreen:
         (radians); ``daz``, ``el_det``: each detector's azimuth offset and elevation (radians).
         """
         t_rel = np.asarray(t_rel, dtype=np.float64)
-        sin_az, cos_az = np.sin(az), np.cos(az)
+        az = np.asarray(az, dtype=np.float64)
+        daz = np.atleast_1d(np.asarray(daz, dtype=np.float64))
+        el_det = np.atleast_1d(np.asarray(el_det, dtype=np.float64))
         wx, wy = self.wind
         out = np.empty((len(daz), len(t_rel)), dtype=np.float32)
-        per_call = max(1, MAX_POINTS_PER_CALL // max(1, len(t_rel)))
-        for start in range(0, len(daz), per_call):
-            sl = slice(start, start + per_call)
-            reach = (self.config.altitude / np.tan(el_det[sl]))[:, None]
-            cd, sd = np.cos(daz[sl])[:, None], np.sin(daz[sl])[:, None]
-            # sin(az + daz) and cos(az + daz) without evaluating trig per sample and detector
-            x = reach * (sin_az * cd + cos_az * sd) - wx * t_rel
-            y = reach * (cos_az * cd - sin_az * sd) - wy * t_rel
-            coords = np.stack([(y - self.y0) / self.config.pixel, (x - self.x0) / self.config.pixel])
-            del x, y
-            out[sl] = ndimage.map_coordinates(self.field, coords.reshape(2, -1), order=1,
-                                              mode="nearest").reshape(coords.shape[1:])
+        _sample_screen(self.field, (self.x0, self.y0, self.config.pixel), wx, wy,
+                       self.config.altitude / np.tan(el_det), np.sin(daz), np.cos(daz),
+                       t_rel, np.sin(az), np.cos(az), out)
         return out
+
+
+@njit(cache=True, nogil=True)
+def _sample_screen(field, origin, wx, wy, reach, sin_daz, cos_daz, t_rel, sin_az, cos_az, out):
+    """Bilinear interpolation of ``field`` at every detector's line of sight, as
+    ``ndimage.map_coordinates(order=1, mode="nearest")`` would (coordinates beyond the edge
+    take the edge values), in one pass without coordinate arrays."""
+    x0, y0, pix = origin
+    ny, nx = field.shape
+    for d in range(out.shape[0]):
+        for k in range(out.shape[1]):
+            # sin(az + daz), cos(az + daz) from the per-sample and per-detector parts
+            sin_t = sin_az[k] * cos_daz[d] + cos_az[k] * sin_daz[d]
+            cos_t = cos_az[k] * cos_daz[d] - sin_az[k] * sin_daz[d]
+            col = (reach[d] * sin_t - wx * t_rel[k] - x0) / pix
+            row = (reach[d] * cos_t - wy * t_rel[k] - y0) / pix
+            col = min(max(col, 0.0), nx - 1.0)
+            row = min(max(row, 0.0), ny - 1.0)
+            i, j = min(int(row), ny - 2), min(int(col), nx - 2)
+            fr, fc = row - i, col - j
+            out[d, k] = ((1 - fr) * ((1 - fc) * field[i, j] + fc * field[i, j + 1])
+                         + fr * ((1 - fc) * field[i + 1, j] + fc * field[i + 1, j + 1]))
 
 
 def screen_bounds(config, t_rel, az, el_min, el_max, margin=100.0):

@@ -66,11 +66,13 @@ def _runs(samples):
 
 def _strip(state, track, reach):
     """Indices of the group's detectors passing within ``reach`` of the source's track (flat
-    focal-plane distance, which over a wafer differs from the angle by < 1e-4 of it)."""
+    focal-plane distance, which over a wafer differs from the angle by < 1e-4 of it). The track
+    is thinned to <= 65 points and ``reach`` widened by the largest gap between them."""
     step = max(1, len(track.xi) // 64)
-    points = np.c_[track.xi[::step], track.eta[::step]]
-    near = state.tree.query_ball_point(points, reach + step * _track_step(track))
-    return np.unique(np.concatenate([np.asarray(n, int) for n in near] + [np.zeros(0, int)]))
+    xi, eta = track.xi[::step], track.eta[::step]
+    limit = reach + step * _track_step(track)
+    d2 = (state.xi[:, None] - xi[None, :]) ** 2 + (state.eta[:, None] - eta[None, :]) ** 2
+    return np.flatnonzero(d2.min(axis=1, initial=np.inf) <= limit**2)
 
 
 def _track_step(track):
@@ -119,5 +121,5 @@ def inject_flare(state, flare, search, options) -> CrossingResult:
         if len(found):
             tables.append(found)
     if tables:
-        result.detections = vstack(tables)
+        result.detections = tables[0] if len(tables) == 1 else vstack(tables)
     return result

@@ -20,12 +20,10 @@ import json
 import logging
 import mmap
 from dataclasses import dataclass
-from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 from astropy.table import Table
-from scipy.spatial import cKDTree
 from sotodlib import core
 from sotodlib.preprocess import Pipeline
 
@@ -110,15 +108,24 @@ def group_info(folder) -> dict:
 
 
 #: What the catalogue steps read besides transient_snr; the rest is dropped from the group's
-#: AxisManager so that cutting a window out of it stays cheap.
+#: AxisManager so that cutting a window out of it, and every merge into the window, stays cheap.
 WINDOW_FIELDS = {"flags": ("turnarounds",),
                  "transient_filter": ("dead", "sigma_amp", "beam_sigma", "fit_inflation",
-                                      "lag", "response", "sigma_t")}
+                                      "lag", "response", "sigma_t"),
+                 "obs_info": ("obs_id",),
+                 "det_info": ("wafer_slot",)}
 
 
-def _slim(aman):
+def _slim(aman, catalog_steps):
+    """Drop what the catalogue steps never read (see :data:`WINDOW_FIELDS`); ``det_info`` keeps
+    the wafer and the bandpass fields the steps are configured with."""
+    bandpass = {(s.get("calc") or {}).get("bandpass_field", "bandpass") for s in catalog_steps
+                if isinstance(s.get("calc"), dict)} | {"bandpass"}
     for name, keep in WINDOW_FIELDS.items():
+        if name not in aman._fields:
+            continue
         sub = aman[name]
+        keep = set(keep) | (bandpass if name == "det_info" else set())
         for field in [f for f in sub._fields if f not in keep]:
             sub.move(field, None)
     if "iir_params" in aman._fields:
@@ -157,17 +164,12 @@ class GroupState:
         aman = core.AxisManager.load(str(folder / "state.h5"))
         info = group_info(folder)
         model = NoiseModel.from_aman(aman)
-        _slim(aman)
+        _slim(aman, catalog_steps)
         return cls(group, aman, _read_ahead(np.load(folder / "snr.npy", mmap_mode="r")),
                    model, info["error_scale"],
                    np.asarray(aman.timestamps), np.asarray(aman[BORE_Q]),
                    np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta),
                    np.asarray(aman.transient_filter.sigma_amp), catalog_steps)
-
-    @cached_property
-    def tree(self):
-        """k-d tree of the detectors' (xi, eta), for finding those near a source's track."""
-        return cKDTree(np.c_[self.xi, self.eta])
 
     @property
     def footprint(self):

@@ -173,6 +173,8 @@ def run_campaign(cfg: CampaignConfig, restart=False, progress=True, pool=None,
     folders = prepare_noise(cfg, out, progress)
     specs = unit_specs(cfg, out, folders)
     todo = [s for s in specs if not unit_done(out, _cell(s), s["obs_id"], s["digest"])]
+    # slowest first (slow, bright flares are crossed most often), so no process idles at the end
+    todo.sort(key=lambda s: (s["cell"]["t_rise"], s["cell"]["s_peak"]), reverse=True)
     if todo:
         run_units(todo, cfg.nproc, progress, pool, as_completed)
     flares, detections = collect(specs)

@@ -85,7 +85,8 @@ def search_flares(states, flares, options, max_dt, max_offset):
             if len(res.detections):
                 tables.append(res.detections)
         if tables:
-            matched = match(vstack(tables), flares[i:i + 1], crossings, max_dt, max_offset)
+            found_here = tables[0] if len(tables) == 1 else vstack(tables)   # vstack: ~5 ms
+            matched = match(found_here, flares[i:i + 1], crossings, max_dt, max_offset)
             matched = matched[matched["source_id"] >= 0]
             columns["n_detections"][i] = len(matched)
             if len(matched):

@@ -1,5 +1,6 @@
 """The quick campaign, run as a user runs it: ``so-transients campaign`` in a subprocess."""
 import importlib.util
+import json
 import os
 import shutil
 import subprocess
@@ -39,6 +40,13 @@ def test_every_output_is_written(quick):
     assert "| 0.5 |" in run.stdout and "| 400 | 550 | 800 |" in run.stdout   # paper's Table 2
     false = Table.read(results / "false_positives.ecsv")
     assert str(false["rate_noise"].unit) == "1 / h" and false["hours"][0] == pytest.approx(1 / 6, rel=1e-3)
+    # the per-group searches (run in the pool while the next group was prepared) all finished
+    groups = sorted((out / "noise" / "groups").iterdir())
+    counts = [json.loads((g / "false_positives.json").read_text()) for g in groups]
+    assert all(c["inverted"] and c["stamp"] == (g / "digest.txt").read_text()
+               for c, g in zip(counts, groups))
+    assert false["n_noise"].sum() == sum(len(Table.read(g / "false_noise.ecsv")) for g in groups)
+    assert false["n_inverted"].sum() == sum(c["n_false_inverted"] for c in counts)
 
 
 def test_efficiency_rises_with_peak_flux_within_errors(quick):

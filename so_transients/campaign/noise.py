@@ -8,11 +8,12 @@ need is then kept on disk, under ``<output>/noise/groups/<group>/``:
   each worker reads only the windows it needs;
 * ``state.h5``: the rest of the AxisManager without the signal (timestamps, boresight and its
   quaternions, focal plane, det_info, flags, ``transient_filter`` with the noise model);
-* ``info.json``: the fit's error scale measured on the noise, and the false positives of the
-  catalogue steps run on the noise-only S/N and on its sign-inverted copy (the site pipeline on
-  -TOD: every standard step and the filter are odd in the data, so its S/N is exactly minus
-  this one);
-* ``false_noise.ecsv`` / ``false_inverted.ecsv``: those false detections.
+* ``info.json``: the fit's error scale measured on the noise, the duration and noise level;
+* ``false_noise.ecsv`` / ``false_inverted.ecsv`` and ``false_positives.json`` (their counts):
+  the detections of the catalogue steps run on the noise-only S/N and on its sign-inverted copy
+  (the site pipeline on -TOD: every standard step and the filter are odd in the data, so its
+  S/N is exactly minus this one). :func:`search_false_positives` makes them from the files
+  above, so a campaign runs it in a worker while the next group is being prepared.
 """
 from __future__ import annotations
 
@@ -72,8 +73,9 @@ def campaign_groups(context, bands) -> list:
     return groups
 
 
-def prepare_group(context, group: Group, standard_steps, catalog_steps, folder, inverted=True):
-    """Filter one noise-only group and store its state in ``folder`` (see the module doc)."""
+def prepare_group(context, group: Group, standard_steps, catalog_steps, folder):
+    """Filter one noise-only group, measure the fit's error scale and store the group's state
+    in ``folder`` (see the module doc); returns ``info.json``'s content."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     ctx = core.Context(str(context))
@@ -85,26 +87,52 @@ def prepare_group(context, group: Group, standard_steps, catalog_steps, folder, 
     probe = CatalogSearch(catalog_steps).steps[-1]
     live = np.flatnonzero(~np.asarray(aman.transient_filter.dead, bool))
     scale = probe.error_scale(aman, live, np.zeros(0))
-    search = CatalogSearch(catalog_steps, error_scale=scale)
-    noise = search.run(aman, group.obs_id)
-    aman.transient_snr[:] *= -1
-    flipped = search.run(aman, group.obs_id) if inverted else Table()
-    noise.write(folder / "false_noise.ecsv", overwrite=True)
-    flipped.write(folder / "false_inverted.ecsv", overwrite=True)
     for name in [n for n in aman._fields if n not in KEEP_FIELDS]:
         aman.move(name, None)
     aman.save(str(folder / "state.h5"), overwrite=True)
     noise_rms = float(np.median(np.asarray(aman.transient_filter.noise_level)[live]))
     info = dict(error_scale=float(scale), duration=duration, n_dets=int(aman.dets.count),
-                noise_rms=noise_rms,
-                n_false_noise=len(noise), n_false_inverted=len(flipped), inverted=bool(inverted))
+                noise_rms=noise_rms)
     (folder / "info.json").write_text(json.dumps(info, indent=1))
     return info
 
 
+def search_false_positives(group: Group, folder, catalog_steps, inverted=True, stamp=""):
+    """Run the catalogue steps on a prepared group's noise-only S/N and on its sign-inverted
+    copy; writes ``false_noise.ecsv``, ``false_inverted.ecsv`` and, last (it marks the search
+    done), ``false_positives.json`` with their counts and ``stamp``. Returns the counts."""
+    folder = Path(folder)
+    aman = core.AxisManager.load(str(folder / "state.h5"))
+    _slim(aman, catalog_steps)
+    aman.wrap("transient_snr", np.load(folder / "snr.npy"), [(0, "dets"), (1, "samps")])
+    search = CatalogSearch(catalog_steps, error_scale=group_info(folder)["error_scale"])
+    noise = search.run(aman, group.obs_id)
+    aman.transient_snr[:] *= -1
+    flipped = search.run(aman, group.obs_id) if inverted else Table()
+    noise.write(folder / "false_noise.ecsv", overwrite=True)
+    flipped.write(folder / "false_inverted.ecsv", overwrite=True)
+    counts = dict(n_false_noise=len(noise), n_false_inverted=len(flipped),
+                  inverted=bool(inverted), stamp=stamp)
+    (folder / "false_positives.json").write_text(json.dumps(counts, indent=1))
+    return counts
+
+
+def false_positives_done(folder, inverted, stamp) -> bool:
+    """Whether :func:`search_false_positives` finished in ``folder`` with these settings."""
+    path = Path(folder) / "false_positives.json"
+    if not path.exists():
+        return False
+    done = json.loads(path.read_text())
+    return done.get("stamp") == stamp and done.get("inverted") == bool(inverted)
+
+
 def group_info(folder) -> dict:
-    """The ``info.json`` that :func:`prepare_group` wrote in ``folder``."""
-    return json.loads((Path(folder) / "info.json").read_text())
+    """``info.json`` of a prepared group, with the false-positive counts once searched."""
+    folder = Path(folder)
+    info = json.loads((folder / "info.json").read_text())
+    if (folder / "false_positives.json").exists():
+        info.update(json.loads((folder / "false_positives.json").read_text()))
+    return info
 
 
 #: What the catalogue steps read besides transient_snr; the rest is dropped from the group's

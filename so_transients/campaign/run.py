@@ -30,7 +30,8 @@ from tqdm.auto import tqdm
 from ..site import apply_overrides
 
 from .config import CampaignConfig, Cell
-from .noise import Group, campaign_groups, noise_dataset, prepare_group
+from .noise import (Group, campaign_groups, false_positives_done, noise_dataset,
+                    prepare_group, search_false_positives)
 from .search import split_pipe
 from .units import run_unit, unit_done, unit_paths
 
@@ -62,14 +63,20 @@ def pipeline_steps(cfg):
     return split_pipe(apply_overrides(pipe, cfg.preprocess_overrides))
 
 
-def prepare_noise(cfg, out: Path, progress=True) -> dict:
-    """{Group: folder} of every prepared noise-only group (preparing what is missing)."""
+def prepare_noise(cfg, out: Path, progress=True, pool=None):
+    """Prepare every noise-only group that is missing; returns ``({Group: folder}, futures)``.
+
+    Groups are filtered here one at a time (each holds a whole wafer-band hour in memory). The
+    false-positive search of a prepared group only reads its files, so with a ``pool`` it runs
+    there, on the core the (mostly single-threaded) preprocessing of the next group leaves
+    idle; ``futures`` are those searches (empty without a pool: they ran here).
+    """
     context = noise_dataset(cfg, out / "noise" / "sim", progress)
     standard, catalog = pipeline_steps(cfg)
     for step in standard:   # filter threads: as many as the campaign's processes
         if step["name"] == "transient_filter":
             step.setdefault("process", {}).setdefault("workers", cfg.nproc)
-    folders = {}
+    folders, futures = {}, []
     stamp = cfg.noise_digest()
     groups = campaign_groups(context, cfg.bands)
     for group in tqdm(groups, desc="noise-only groups", disable=not progress):
@@ -77,10 +84,17 @@ def prepare_noise(cfg, out: Path, progress=True) -> dict:
         info = folder / "info.json"
         if not (info.exists() and (folder / "digest.txt").exists()
                 and (folder / "digest.txt").read_text() == stamp):
-            prepare_group(context, group, standard, catalog, folder, cfg.inverted)
+            (folder / "digest.txt").unlink(missing_ok=True)
+            prepare_group(context, group, standard, catalog, folder)
             (folder / "digest.txt").write_text(stamp)
+        if not false_positives_done(folder, cfg.inverted, stamp):
+            args = (group, str(folder), catalog, cfg.inverted, stamp)
+            if pool is None:
+                search_false_positives(*args)
+            else:
+                futures.append(pool.submit(search_false_positives, *args))
         folders[group] = folder
-    return folders
+    return folders, futures
 
 
 def split_flares(n, n_obs):
@@ -170,13 +184,22 @@ def run_campaign(cfg: CampaignConfig, restart=False, progress=True, pool=None,
 
     out = Path(cfg.output)
     check_state(cfg, out, restart)
-    folders = prepare_noise(cfg, out, progress)
-    specs = unit_specs(cfg, out, folders)
-    todo = [s for s in specs if not unit_done(out, _cell(s), s["obs_id"], s["digest"])]
-    # slowest first (slow, bright flares are crossed most often), so no process idles at the end
-    todo.sort(key=lambda s: (s["cell"]["t_rise"], s["cell"]["s_peak"]), reverse=True)
-    if todo:
-        run_units(todo, cfg.nproc, progress, pool, as_completed)
+    own = pool is None and cfg.nproc > 1
+    if own:
+        pool, as_completed = executor(cfg.nproc)
+    try:
+        folders, searches = prepare_noise(cfg, out, progress, pool)
+        specs = unit_specs(cfg, out, folders)
+        todo = [s for s in specs if not unit_done(out, _cell(s), s["obs_id"], s["digest"])]
+        # slowest first (slow, bright flares are crossed most often): no process idles at the end
+        todo.sort(key=lambda s: (s["cell"]["t_rise"], s["cell"]["s_peak"]), reverse=True)
+        if todo:
+            run_units(todo, cfg.nproc, progress, pool, as_completed)
+        for search in searches:
+            search.result()
+    finally:
+        if own and pool is not None:
+            pool.shutdown()
     flares, detections = collect(specs)
     check = None
     if cfg.full_check.cells:

@@ -37,7 +37,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.fft
-from scipy import ndimage
 from tqdm.auto import tqdm
 
 from . import spectral_ops

@@ -22,7 +22,7 @@ import numpy as np
 from astropy.table import Table, vstack
 from tqdm.auto import tqdm
 
-from ..bands import FLAVOR_BANDS, FLAVOR_SAMPLE_RATE, get_band
+from ..bands import FLAVOR_SAMPLE_RATE, get_band
 from ..io.tod_file import TodWriter
 from ..pointing import boresight_sightline, horizon_offsets, radec_of_samples
 from . import atmosphere, focal_plane

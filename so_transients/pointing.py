@@ -86,15 +86,12 @@ def source_near(bore_q, ra, dec, center, reach, stride=16):
     n = len(bore_q)
     if n == 0:
         return np.zeros(0, int), np.zeros(0), np.zeros(0)
-    coarse = np.unique(np.r_[np.arange(0, n, max(int(stride), 1)), n - 1])
+    # the last sample is always a coarse point (repeated when it already is one: harmless)
+    coarse = np.r_[np.arange(0, n, max(int(stride), 1)), n - 1]
     xi, eta = source_in_focal_plane(bore_q[coarse], ra, dec)
-    step = (float(np.max(angular_distance_xieta(xi[:-1], eta[:-1], xi[1:], eta[1:])))
-            if len(coarse) > 1 else 0.0)
+    step = float(np.max(angular_distance_xieta(xi[:-1], eta[:-1], xi[1:], eta[1:])))
     hit = angular_distance_xieta(xi, eta, center[0], center[1]) < reach + 2 * step
     spans = np.flatnonzero(hit[:-1] | hit[1:])
-    if len(coarse) == 1:
-        spans = np.flatnonzero(hit)
-        coarse = np.r_[coarse, coarse]
     mark = np.zeros(n + 1, int)
     np.add.at(mark, coarse[spans], 1)
     np.add.at(mark, coarse[spans + 1] + 1, -1)

@@ -188,23 +188,22 @@ def detector_pitch(xi, eta):
     return float(np.median(dist[:, 1]))
 
 
-def _dict_to_aman(aman_axes, columns, axis_name, n):
+def _dict_to_aman(columns, axis_name, n):
     """An AxisManager holding 1-d ``columns`` (each of length ``n``) on a new IndexAxis.
 
     Equivalent to wrapping the columns one by one, in one step: each ``wrap`` merges, and a
     merge restricts every field already present, so a catalogue of k columns would cost k^2
-    field restrictions (a third of a campaign's search time). The columns go into one helper
-    exactly as ``AxisManager.wrap`` builds its own helper, and that is merged once.
+    field restrictions (a third of a campaign's search time). The columns are assigned exactly
+    as ``AxisManager.wrap`` fills the helper it then merges.
     """
-    out = core.AxisManager(*aman_axes, core.IndexAxis(axis_name, n))
-    helper = core.AxisManager(core.IndexAxis(axis_name, n))
+    out = core.AxisManager(core.IndexAxis(axis_name, n))
     for name, values in columns.items():
         values = np.asarray(values)
         if values.ndim != 1 or len(values) != n:
             raise ValueError(f"column {name!r} has shape {values.shape}, expected ({n},)")
-        helper._fields[name] = values
-        helper._assignments[name] = [axis_name]
-    return out.merge(helper, restrict_in_place=True)
+        out._fields[name] = values
+        out._assignments[name] = [axis_name]
+    return out
 
 
 def _set_columns(sub, columns, axis_name):
@@ -212,7 +211,7 @@ def _set_columns(sub, columns, axis_name):
     column would restrict every field of ``sub`` once per column)."""
     for name in [k for k in columns if k in sub._fields]:
         sub.move(name, None)
-    sub.merge(_dict_to_aman([], columns, axis_name, sub[axis_name].count),
+    sub.merge(_dict_to_aman(columns, axis_name, sub[axis_name].count),
               restrict_in_place=True)
 
 
@@ -490,8 +489,8 @@ class TransientFind(_Preprocess):
         for name in ("transient_candidates", "transient_hits"):
             if name in aman._fields:
                 aman.move(name, None)
-        aman.wrap("transient_candidates", _dict_to_aman([], cands, CAND_AXIS, n))
-        aman.wrap("transient_hits", _dict_to_aman([], hits, HIT_AXIS, len(hits["cand"])))
+        aman.wrap("transient_candidates", _dict_to_aman(cands, CAND_AXIS, n))
+        aman.wrap("transient_hits", _dict_to_aman(hits, HIT_AXIS, len(hits["cand"])))
 
     def save(self, proc_aman, aman):
         if not self.save_cfgs:

@@ -17,7 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from astropy.table import Table, vstack
+from astropy.table import Table
 
 from ..bands import fwhm_to_sigma, get_band
 from ..injection import filtered_snr
@@ -25,6 +25,7 @@ from ..matching import crossing_times
 from ..processes import boresight_mask, detector_pitch
 from ..sim.config import FlareConfig
 from ..sim.sources import PointingContext, SourceCrossing, add_sources, draw_flares, source_crossings
+from .search import stack
 
 
 def draw_cell_flares(cell, n, states, rng) -> Table:
@@ -121,5 +122,5 @@ def inject_flare(state, flare, search, options) -> CrossingResult:
         if len(found):
             tables.append(found)
     if tables:
-        result.detections = tables[0] if len(tables) == 1 else vstack(tables)
+        result.detections = stack(tables)
     return result

@@ -102,10 +102,10 @@ def search_false_positives(group: Group, folder, catalog_steps, inverted=True, s
     copy; writes ``false_noise.ecsv``, ``false_inverted.ecsv`` and, last (it marks the search
     done), ``false_positives.json`` with their counts and ``stamp``. Returns the counts."""
     folder = Path(folder)
-    aman = core.AxisManager.load(str(folder / "state.h5"))
-    _slim(aman, catalog_steps)
-    aman.wrap("transient_snr", np.load(folder / "snr.npy"), [(0, "dets"), (1, "samps")])
-    search = CatalogSearch(catalog_steps, error_scale=group_info(folder)["error_scale"])
+    state = GroupState.load(group, folder, catalog_steps)
+    aman = state.aman
+    aman.wrap("transient_snr", np.array(state.snr), [(0, "dets"), (1, "samps")])   # a copy
+    search = CatalogSearch(catalog_steps, error_scale=state.error_scale)
     noise = search.run(aman, group.obs_id)
     aman.transient_snr[:] *= -1
     flipped = search.run(aman, group.obs_id) if inverted else Table()
@@ -147,7 +147,7 @@ WINDOW_FIELDS = {"flags": ("turnarounds",),
 def _slim(aman, catalog_steps):
     """Drop what the catalogue steps never read (see :data:`WINDOW_FIELDS`); ``det_info`` keeps
     the wafer and the bandpass fields the steps are configured with."""
-    bandpass = {(s.get("calc") or {}).get("bandpass_field", "bandpass") for s in catalog_steps
+    bandpass = {s["calc"].get("bandpass_field", "bandpass") for s in catalog_steps
                 if isinstance(s.get("calc"), dict)} | {"bandpass"}
     for name, keep in WINDOW_FIELDS.items():
         if name not in aman._fields:

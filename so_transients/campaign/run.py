@@ -139,11 +139,9 @@ def executor(nproc):
     return pool, as_completed
 
 
-def run_units(specs, nproc, progress=True, pool=None, as_completed=None):
-    """Run the work units, in a pool when ``nproc`` > 1; returns their summaries."""
-    own = pool is None and nproc > 1
-    if own:
-        pool, as_completed = executor(nproc)
+def run_units(specs, progress=True, pool=None, as_completed=None):
+    """Run the work units, in ``pool`` if given (else here, one after the other); returns
+    their summaries."""
     bar = tqdm(total=len(specs), desc="injections", unit="unit", disable=not progress)
     done = []
     try:
@@ -158,8 +156,6 @@ def run_units(specs, nproc, progress=True, pool=None, as_completed=None):
                 bar.update()
     finally:
         bar.close()
-        if own and pool is not None:
-            pool.shutdown()
     return done
 
 
@@ -194,7 +190,7 @@ def run_campaign(cfg: CampaignConfig, restart=False, progress=True, pool=None,
         # slowest first (slow, bright flares are crossed most often): no process idles at the end
         todo.sort(key=lambda s: (s["cell"]["t_rise"], s["cell"]["s_peak"]), reverse=True)
         if todo:
-            run_units(todo, cfg.nproc, progress, pool, as_completed)
+            run_units(todo, progress, pool, as_completed)
         for search in searches:
             search.result()
     finally:

@@ -26,6 +26,7 @@ import scipy.fft
 from numba import njit
 from scipy import signal as sps
 
+
 def _von_karman_filter(ny, nx, pixel, outer_scale, aperture):
     ky = scipy.fft.fftfreq(ny, d=pixel)[:, None]
     kx = scipy.fft.rfftfreq(nx, d=pixel)[None, :]

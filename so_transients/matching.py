@@ -20,38 +20,44 @@ from .pointing import angular_distance_xieta, source_near
 ARCMIN = np.pi / (180 * 60)
 
 
-def crossing_times(timestamps, bore_q, det_xi, det_eta, flare, fwhm, min_gap=2.0):
+def crossing_times(timestamps, bore_q, det_xi, det_eta, flare, fwhm, min_gap=2.0, track=None):
     """Times (ctime) of the injected-signal peak in each crossing of ``flare`` by the detectors.
 
     ``flare``: a row with ``ra``, ``dec``, ``t_peak``, ``s_peak``, ``t_rise``, ``t_decay``,
     ``eta_rise``, ``eta_decay``; ``fwhm`` in radians. A crossing is a run of samples where the
     source is within one FWHM of some detector, runs closer than ``min_gap`` seconds merged.
+    ``track``: the flare's ``(samples, xi, eta)`` from :func:`~so_transients.pointing.
+    source_near` over its active window, with a reach of at least the detectors' footprint
+    plus one FWHM, when the caller has it already (computed here otherwise).
     """
-    start, stop = active_window(flare["t_peak"], flare["t_rise"], flare["t_decay"])
-    lo, hi = np.searchsorted(timestamps, [start, stop])
-    if hi <= lo:
-        return np.zeros(0)
     centre = np.array([det_xi.mean(), det_eta.mean()])
     radius = np.hypot(det_xi - centre[0], det_eta - centre[1]).max() + fwhm
-    near, xi, eta = source_near(bore_q[lo:hi], flare["ra"], flare["dec"], centre, radius)
+    if track is None:
+        start, stop = active_window(flare["t_peak"], flare["t_rise"], flare["t_decay"])
+        lo, hi = np.searchsorted(timestamps, [start, stop])
+        near, xi, eta = source_near(bore_q[lo:hi], flare["ra"], flare["dec"], centre, radius)
+        near = near + lo
+    else:
+        near, xi, eta = track
+        inside = angular_distance_xieta(xi, eta, centre[0], centre[1]) < radius
+        near, xi, eta = near[inside], xi[inside], eta[inside]
     if not len(near):
         return np.zeros(0)
-    # the nearest detector in the (flat) focal plane, then its exact angular distance
     _, nearest = cKDTree(np.c_[det_xi, det_eta]).query(np.c_[xi, eta])
     dist = angular_distance_xieta(det_xi[nearest], det_eta[nearest], xi, eta)
     close = near[dist < fwhm]
     if not len(close):
         return np.zeros(0)
-    t = timestamps[lo:hi]
+    t = timestamps[close]
     sigma = fwhm_to_sigma(fwhm)
-    signal = flare_flux(t[close], flare["t_peak"], flare["s_peak"], flare["t_rise"],
+    signal = flare_flux(t, flare["t_peak"], flare["s_peak"], flare["t_rise"],
                         flare["t_decay"], flare["eta_rise"], flare["eta_decay"]) \
         * np.exp(-0.5 * (dist[dist < fwhm] / sigma) ** 2)
-    breaks = np.flatnonzero(np.diff(t[close]) > min_gap) + 1
+    breaks = np.flatnonzero(np.diff(t) > min_gap) + 1
     times = []
     for run in np.split(np.arange(len(close)), breaks):
         if signal[run].max() > 0:
-            times.append(t[close][run][np.argmax(signal[run])])
+            times.append(t[run][np.argmax(signal[run])])
     return np.array(times)
 
 
@@ -59,6 +65,16 @@ def sky_separation(ra1, dec1, ra2, dec2):
     """Great-circle distance (radians)."""
     cosd = np.sin(dec1) * np.sin(dec2) + np.cos(dec1) * np.cos(dec2) * np.cos(ra1 - ra2)
     return np.arccos(np.clip(cosd, -1, 1))
+
+
+def _rows_by_group(detections) -> dict:
+    """{(obs_id, wafer_slot, bandpass): indices of the detections of that group}."""
+    keys = zip(*(np.asarray(detections[k]).astype(str)
+                 for k in ("obs_id", "wafer_slot", "bandpass")))
+    groups = {}
+    for i, key in enumerate(keys):
+        groups.setdefault(key, []).append(i)
+    return {key: np.asarray(rows) for key, rows in groups.items()}
 
 
 def match(detections: Table, flares: Table, crossings: dict, max_dt=0.5,
@@ -72,18 +88,22 @@ def match(detections: Table, flares: Table, crossings: dict, max_dt=0.5,
     n = len(out)
     source = np.full(n, -1)
     best_dt = np.full(n, np.nan)
-    best_off = np.full(n, np.nan)
-    for i, det in enumerate(out):
-        band_flares = flares[flares["band"] == det["bandpass"]]
-        for fl in band_flares:
-            off = sky_separation(float(det["ra"]), float(det["dec"]), fl["ra"], fl["dec"])
-            times = crossings.get((int(fl["source_id"]), det["obs_id"], det["wafer_slot"],
-                                   det["bandpass"]), np.zeros(0))
-            if off > max_offset or not len(times):
-                continue
-            dt = np.min(np.abs(times - float(det["t_peak"])))
-            if dt <= max_dt and (source[i] < 0 or off < best_off[i]):
-                source[i], best_dt[i], best_off[i] = int(fl["source_id"]), dt, off
+    best_off = np.full(n, np.inf)
+    if n:
+        ra, dec, t = (np.asarray(out[k], float) for k in ("ra", "dec", "t_peak"))
+        groups = _rows_by_group(out)
+        # flares in table order and a strict "<": among equal offsets the first flare wins
+        for fl in flares:
+            off = sky_separation(ra, dec, float(fl["ra"]), float(fl["dec"]))
+            for (obs_id, wafer, band), rows in groups.items():
+                times = crossings.get((int(fl["source_id"]), obs_id, wafer, band))
+                if band != str(fl["band"]) or times is None or not len(times):
+                    continue
+                dt = np.min(np.abs(np.asarray(times)[None, :] - t[rows, None]), axis=1)
+                better = (off[rows] <= max_offset) & (dt <= max_dt) & (off[rows] < best_off[rows])
+                hit = rows[better]
+                source[hit], best_dt[hit], best_off[hit] = int(fl["source_id"]), dt[better], off[hit]
+    best_off[source < 0] = np.nan
     out["source_id"] = source
     out["dt"] = best_dt * u.s
     out["offset"] = best_off * u.rad

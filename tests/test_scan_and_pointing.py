@@ -97,3 +97,25 @@ def test_source_near_equals_tracking_every_sample(scan, xi0, reach_deg):
     assert np.array_equal(samples, expect)
     assert np.array_equal(sxi, xi[expect]) and np.array_equal(seta, eta[expect])
     assert (len(expect) > 0) == (xi0 < 10)
+
+
+def test_crossing_times_from_a_given_track_equal_computing_it(scan):
+    """The injections pass the track they already have (a wider reach); same crossings."""
+    from so_transients.lightcurve import active_window
+    from so_transients.matching import crossing_times
+    from so_transients.sim.sources import BEAM_REACH_SIGMA
+    *_, q = scan
+    t = T0 + np.arange(len(q)) / FS
+    ra, dec = pointing.radec_of_samples(q, [0.004], [0.001], [0], [30000])
+    flare = dict(ra=ra[0], dec=dec[0], t_peak=t[30000], s_peak=300.0, t_rise=130.0,
+                 t_decay=130.0, eta_rise=1.0, eta_decay=1.0)
+    rng = np.random.default_rng(3)
+    xi, eta = rng.uniform(-0.006, 0.006, (2, 300))
+    fwhm = np.radians(2.2 / 60)
+    centre = (xi.mean(), eta.mean())
+    reach = np.hypot(xi - centre[0], eta - centre[1]).max() + BEAM_REACH_SIGMA * fwhm / 2.355
+    lo, hi = np.searchsorted(t, active_window(flare["t_peak"], 130.0))
+    near, sxi, seta = pointing.source_near(q[lo:hi], ra[0], dec[0], centre, reach)
+    alone = crossing_times(t, q, xi, eta, flare, fwhm)
+    given = crossing_times(t, q, xi, eta, flare, fwhm, track=(near + lo, sxi, seta))
+    assert len(alone) >= 2 and np.array_equal(alone, given)

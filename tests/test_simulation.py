@@ -159,3 +159,24 @@ def test_bad_configs_are_refused(tmp_path):
         run_sim(tmp_path, instrument={"tubes": ["q7"]})
     with pytest.raises(ValueError, match="no detectors selected"):
         run_sim(tmp_path, instrument={"tubes": ["i1"], "wafers": ["w00"]})
+
+
+def test_add_sources_is_the_beam_out_to_its_reach():
+    """Every detector-sample pair within BEAM_REACH_SIGMA beam sigmas gets flux x beam; no
+    other sample changes (checked against the plain formula on every pair)."""
+    from so_transients.pointing import angular_distance_xieta
+    from so_transients.sim.sources import BEAM_REACH_SIGMA, SourceCrossing, add_sources
+    rng = np.random.default_rng(5)
+    sigma = np.radians(0.93 / 60)
+    xi, eta = rng.uniform(-0.004, 0.004, (2, 200)) + 0.03    # a wafer off the boresight
+    track = SourceCrossing(np.arange(50, 650), np.linspace(0.025, 0.035, 600),
+                           np.full(600, 0.0301), rng.uniform(100, 300, 600))
+    tod = rng.standard_normal((200, 700)).astype(np.float32)
+    expect = tod.copy()
+    dist = angular_distance_xieta(xi[:, None], eta[:, None], track.xi, track.eta)
+    beam = np.where(dist <= BEAM_REACH_SIGMA * sigma,
+                    track.flux * np.exp(-0.5 * (dist / sigma) ** 2), 0.0)
+    expect[:, track.samples] += beam.astype(np.float32)
+    add_sources(tod, xi, eta, [track], sigma)
+    assert 0 < np.count_nonzero(beam) < beam.size / 2
+    assert np.array_equal(tod, expect)

@@ -88,12 +88,13 @@ def inject_flare(state, flare, search, options) -> CrossingResult:
     band = get_band(state.group.band)
     sigma = fwhm_to_sigma(band.fwhm)
     centre, radius = state.footprint
-    times = crossing_times(state.timestamps, state.bore_q, state.xi, state.eta, flare, band.fwhm)
-    result = CrossingResult(times)
     tracks = source_crossings(state.timestamps, state.bore_q, [flare], centre, radius, sigma)
-    if not tracks:
-        return result
+    if not tracks:   # never within the footprint plus the beam's reach: never crossed
+        return CrossingResult(np.zeros(0))
     track = tracks[0]
+    result = CrossingResult(crossing_times(state.timestamps, state.bore_q, state.xi, state.eta,
+                                           flare, band.fwhm,
+                                           track=(track.samples, track.xi, track.eta)))
     windows = []
     pad = int(round(options.window_pad * state.model.sample_rate))
     nsamp = len(state.timestamps)

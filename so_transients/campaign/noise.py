@@ -212,8 +212,8 @@ class GroupState:
         axes = [core.LabelAxis("dets", np.asarray(self.aman.dets.vals)[dets]),
                 core.OffsetAxis("samps", hi - lo, self.aman.samps.offset + lo)]
         win = self.aman.restrict_axes(axes, in_place=False)
-        snr = np.array(self.snr[dets, lo:hi], np.float32)
+        snr = np.asarray(self.snr[dets, lo:hi])     # a copy (fancy indexing)
         if extra_snr is not None and len(rows):
-            snr[rows] += np.where(snr[rows] != 0, extra_snr, 0).astype(np.float32)
+            snr[rows] += np.asarray(extra_snr, np.float32) * (snr[rows] != 0)
         win.wrap("transient_snr", snr, [(0, "dets"), (1, "samps")])
         return win

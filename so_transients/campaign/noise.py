@@ -1,6 +1,9 @@
 """The campaign's noise-only observations: simulated once, preprocessed and filtered once.
 
-For every group (observation x wafer x band) the site config's steps up to
+Each group (observation x wafer x band) is simulated on its own, into
+``<output>/noise/sim/<group>/`` (:func:`simulate_group`; its data are those of the whole
+simulation), so that a campaign can simulate one group while it preprocesses another.
+For every group the site config's steps up to
 ``transient_filter`` run through sotodlib's ``Pipeline`` on the noise-only TOD. What injections
 need is then kept on disk, under ``<output>/noise/groups/<group>/``:
 
@@ -30,7 +33,7 @@ from sotodlib.preprocess import Pipeline
 
 from ..injection import NoiseModel
 from ..processes import BORE_Q, boresight_q
-from ..sim.simulate import simulate
+from ..sim.simulate import planned_detsets, simulate
 from .search import CatalogSearch
 
 log = logging.getLogger(__name__)
@@ -49,28 +52,28 @@ class Group:
         return f"{self.obs_id}_{self.wafer}_{self.band}"
 
 
-def noise_dataset(cfg, root: Path, progress=True) -> Path:
-    """The noise-only dataset's context.yaml, simulated unless ``root`` holds it for this
-    config already."""
+def campaign_groups(cfg) -> list:
+    """Every (observation, wafer, band) group of the noise-only simulation in the campaign's
+    bands, known before anything is simulated."""
+    return [Group(obs_id, *detset.split("_"))
+            for obs_id, detsets in planned_detsets(cfg.sim).items()
+            for detset in detsets if detset.split("_")[1] in cfg.bands]
+
+
+def simulate_group(sim_config, root, group: Group, digest: str) -> str:
+    """The noise-only dataset of one group (its context.yaml), simulated into ``root`` unless
+    ``root`` holds it for ``digest`` already. The group's data are those of the whole
+    simulation (see :func:`~so_transients.sim.simulate.simulate`'s ``detsets``)."""
+    root = Path(root)
     stamp = root / "sim_digest.txt"
     context = root / "context.yaml"
-    if context.exists() and stamp.exists() and stamp.read_text() == cfg.sim_digest():
-        return context
-    result = simulate(cfg.sim, output=root, overwrite=True, progress=progress, workers=cfg.nproc)
-    stamp.write_text(cfg.sim_digest())
-    return result.context
-
-
-def campaign_groups(context, bands) -> list:
-    """Every (observation, wafer, band) group of the dataset in ``bands``."""
-    ctx = core.Context(str(context))
-    groups = []
-    for obs_id in ctx.obsdb.query()["obs_id"]:
-        for detset in ctx.obsfiledb.get_detsets(obs_id):
-            wafer, band = detset.split("_")
-            if band in bands:
-                groups.append(Group(str(obs_id), wafer, band))
-    return groups
+    if context.exists() and stamp.exists() and stamp.read_text() == digest:
+        return str(context)
+    stamp.unlink(missing_ok=True)
+    result = simulate(sim_config, output=root, overwrite=True, progress=False,
+                      detsets=[f"{group.wafer}_{group.band}"])
+    stamp.write_text(digest)
+    return str(result.context)
 
 
 def prepare_group(context, group: Group, standard_steps, catalog_steps, folder):

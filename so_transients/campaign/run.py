@@ -3,7 +3,7 @@
 ``<output>/`` holds::
 
     campaign.json        the config and its digest; a different config is refused
-    noise/sim/           the noise-only dataset (sotodlib context)
+    noise/sim/<g>/       the noise-only dataset of each group (a sotodlib context)
     noise/groups/<g>/    each prepared group (see :mod:`so_transients.campaign.noise`)
     units/               one pair of ECSV files per (cell, observation) work unit
     results/             the tables, Markdown and figures (:mod:`.report`, :mod:`.figures`)
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import functools
 import json
 import logging
 import multiprocessing
@@ -30,8 +31,8 @@ from tqdm.auto import tqdm
 from ..site import apply_overrides
 
 from .config import CampaignConfig, Cell
-from .noise import (Group, campaign_groups, false_positives_done, noise_dataset,
-                    prepare_group, search_false_positives)
+from .noise import (campaign_groups, false_positives_done, prepare_group,
+                    search_false_positives, simulate_group)
 from .search import split_pipe
 from .units import run_unit, unit_done, unit_paths
 
@@ -64,28 +65,30 @@ def pipeline_steps(cfg):
 
 
 def prepare_noise(cfg, out: Path, progress=True, pool=None):
-    """Prepare every noise-only group that is missing; returns ``({Group: folder}, futures)``.
+    """Simulate and prepare every noise-only group that is missing; returns
+    ``({Group: folder}, futures)``.
 
-    Groups are filtered here one at a time (each holds a whole wafer-band hour in memory). The
-    false-positive search of a prepared group only reads its files, so with a ``pool`` it runs
-    there, on the core the (mostly single-threaded) preprocessing of the next group leaves
-    idle; ``futures`` are those searches (empty without a pool: they ran here).
+    Groups are preprocessed and filtered here one at a time (each holds a whole wafer-band
+    hour in memory). With a ``pool`` the groups' simulations are submitted there first, so
+    the next group is being simulated while this one is preprocessed (mostly single-threaded),
+    and so is the false-positive search of a prepared group, which only reads its files;
+    ``futures`` are those searches (empty without a pool: they ran here).
     """
-    context = noise_dataset(cfg, out / "noise" / "sim", progress)
     standard, catalog = pipeline_steps(cfg)
     for step in standard:   # filter threads: as many as the campaign's processes
         if step["name"] == "transient_filter":
             step.setdefault("process", {}).setdefault("workers", cfg.nproc)
-    folders, futures = {}, []
     stamp = cfg.noise_digest()
-    groups = campaign_groups(context, cfg.bands)
+    groups = campaign_groups(cfg)
+    folders = {g: out / "noise" / "groups" / g.label for g in groups}
+    contexts = _simulate_ahead(cfg, out, [g for g in groups if not _prepared(folders[g], stamp)],
+                               pool)
+    futures = []
     for group in tqdm(groups, desc="noise-only groups", disable=not progress):
-        folder = out / "noise" / "groups" / group.label
-        info = folder / "info.json"
-        if not (info.exists() and (folder / "digest.txt").exists()
-                and (folder / "digest.txt").read_text() == stamp):
+        folder = folders[group]
+        if group in contexts:
             (folder / "digest.txt").unlink(missing_ok=True)
-            prepare_group(context, group, standard, catalog, folder)
+            prepare_group(contexts[group](), group, standard, catalog, folder)
             (folder / "digest.txt").write_text(stamp)
         if not false_positives_done(folder, cfg.inverted, stamp):
             args = (group, str(folder), catalog, cfg.inverted, stamp)
@@ -93,8 +96,21 @@ def prepare_noise(cfg, out: Path, progress=True, pool=None):
                 search_false_positives(*args)
             else:
                 futures.append(pool.submit(search_false_positives, *args))
-        folders[group] = folder
     return folders, futures
+
+
+def _prepared(folder: Path, stamp) -> bool:
+    digest = folder / "digest.txt"
+    return (folder / "info.json").exists() and digest.exists() and digest.read_text() == stamp
+
+
+def _simulate_ahead(cfg, out: Path, groups, pool) -> dict:
+    """``{group: callable returning its context.yaml}``: the simulations are submitted to
+    ``pool`` now, or run when called without one."""
+    args = {g: (cfg.sim, out / "noise" / "sim" / g.label, g, cfg.sim_digest()) for g in groups}
+    if pool is None:
+        return {g: functools.partial(simulate_group, *a) for g, a in args.items()}
+    return {g: pool.submit(simulate_group, *a).result for g, a in args.items()}
 
 
 def split_flares(n, n_obs):

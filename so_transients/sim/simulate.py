@@ -169,10 +169,42 @@ def _draw_sources(config: SimConfig, blocks, all_dets):
     return flares, (vstack(sources) if sources else empty_table(POINT_SOURCE_COLUMNS))
 
 
+def planned_detsets(config: SimConfig) -> dict:
+    """``{obs_id: [detset, ...]}``: every observation and detset (``<wafer>_<band>``) that
+    ``config`` simulates."""
+    all_dets = _validate_instrument(config)
+    obs = config.observation
+    plan = {}
+    for k in range(obs.n_obs):
+        for tube in config.instrument.tubes:
+            dets = all_dets[tube]
+            plan[obs_id_for(obs.start + k * (obs.duration + obs.gap), tube)] = sorted(
+                {f"{w}_{b}" for w, b in zip(dets["wafer_slot"], dets["bandpass"])})
+    return plan
+
+
+def _wanted_detsets(config, detsets):
+    """``{obs_id: [detset, ...]}`` to write: all of :func:`planned_detsets`, or those in
+    ``detsets`` (each of which must be planned)."""
+    plan = planned_detsets(config)
+    if detsets is None:
+        return plan
+    unknown = set(detsets) - {d for ds in plan.values() for d in ds}
+    if unknown:
+        raise ValueError(f"detsets {sorted(unknown)} are not simulated by this config "
+                         f"(it has {sorted({d for ds in plan.values() for d in ds})})")
+    return {o: [d for d in ds if d in set(detsets)] for o, ds in plan.items()}
+
+
 def simulate(config: SimConfig, output=None, overwrite=False, progress=True,
-             workers=1) -> SimulationResult:
+             workers=1, detsets=None) -> SimulationResult:
     """Run the simulation described by ``config`` and write the dataset to ``output``;
-    ``workers`` threads generate chunks of detectors (the result does not depend on it)."""
+    ``workers`` threads generate chunks of detectors (the result does not depend on it).
+
+    ``detsets``: write only these detsets (``<wafer>_<band>``, in every observation that has
+    them). The sky, the sources, the glitches and every detector's noise are drawn as in the
+    full simulation, so each detset's data are identical to the full simulation's.
+    """
     root = Path(output or config.output)
     if (root / "context.yaml").exists():
         if not overwrite:
@@ -191,22 +223,23 @@ def simulate(config: SimConfig, output=None, overwrite=False, progress=True,
     writer = DatasetWriter(root)
     result = SimulationResult(root / "context.yaml", [], flares, point_sources, Table())
     glitch_tables = []
+    wanted = _wanted_detsets(config, detsets)
     for b, (start, ref) in enumerate(blocks):
         sky = _BlockSky(config, b, ref, all_dets)
         for tube in config.instrument.tubes:
+            obs_id = obs_id_for(start, tube)
+            if not wanted[obs_id]:
+                continue
             tl = ref if flavors[tube] == ref_flavor else _timeline(
                 start, obs_cfg.duration, FLAVOR_SAMPLE_RATE[flavors[tube]], config.scan)
-            obs_id = obs_id_for(start, tube)
             glitch_tables += _simulate_obs(config, writer, sky, tl, tube, obs_id, b,
                                            all_dets[tube], flares, point_sources, progress,
-                                           workers)
+                                           workers, wanted[obs_id])
             result.obs_ids.append(obs_id)
     result.glitches = vstack(glitch_tables) if glitch_tables else Table()
     _write_truth(root, flares, point_sources, result.glitches)
     writer.finish(config.to_dict())
-    result.detsets = {o: sorted({f"{w}_{bd}" for w, bd in zip(all_dets[t]["wafer_slot"],
-                                                              all_dets[t]["bandpass"])})
-                      for o, t in zip(result.obs_ids, config.instrument.tubes * len(blocks))}
+    result.detsets = {o: wanted[o] for o in result.obs_ids}
     return result
 
 
@@ -218,8 +251,8 @@ def _write_truth(root, flares, point_sources, glitches):
 
 
 def _simulate_obs(config, writer, sky, tl: Timeline, tube, obs_id, block, dets, flares,
-                  point_sources, progress, workers=1):
-    """Write one observation (all detsets of one tube); returns its glitch truth tables."""
+                  point_sources, progress, workers, detsets):
+    """Write one observation (``detsets`` of one tube); returns its glitch truth tables."""
     writer.add_detector_metadata(obs_id, tube, dets)
     pattern = config.scan
     writer.add_observation(obs_id, {
@@ -234,11 +267,14 @@ def _simulate_obs(config, writer, sky, tl: Timeline, tube, obs_id, block, dets, 
     glitch_tables = []
     for wafer in sorted(set(dets["wafer_slot"])):
         in_wafer = dets["wafer_slot"] == wafer
+        bands = [b for b in sorted(set(dets["bandpass"][in_wafer])) if f"{wafer}_{b}" in detsets]
+        if not bands:
+            continue
         glitches = draw_glitches(config.glitches, obs_id, wafer, tl.timestamps,
                                  dets["readout_id"][in_wafer],
                                  rng_for(config.seed, GLITCHES, block, wafer))
         glitch_tables.append(glitches)
-        for band_name in sorted(set(dets["bandpass"][in_wafer])):
+        for band_name in bands:
             sel = np.flatnonzero(in_wafer & (dets["bandpass"] == band_name))
             _simulate_detset(config, writer, sky, tl, obs_id, f"{wafer}_{band_name}",
                              {k: v[sel] for k, v in dets.items()}, daz[sel], el_det[sel],

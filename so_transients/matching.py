@@ -43,6 +43,7 @@ def crossing_times(timestamps, bore_q, det_xi, det_eta, flare, fwhm, min_gap=2.0
         near, xi, eta = near[inside], xi[inside], eta[inside]
     if not len(near):
         return np.zeros(0)
+    # the nearest detector in the (flat) focal plane, then its exact angular distance
     _, nearest = cKDTree(np.c_[det_xi, det_eta]).query(np.c_[xi, eta])
     dist = angular_distance_xieta(det_xi[nearest], det_eta[nearest], xi, eta)
     close = near[dist < fwhm]

@@ -189,11 +189,11 @@ def _wanted_detsets(config, detsets):
     plan = planned_detsets(config)
     if detsets is None:
         return plan
-    unknown = set(detsets) - {d for ds in plan.values() for d in ds}
-    if unknown:
-        raise ValueError(f"detsets {sorted(unknown)} are not simulated by this config "
-                         f"(it has {sorted({d for ds in plan.values() for d in ds})})")
-    return {o: [d for d in ds if d in set(detsets)] for o, ds in plan.items()}
+    wanted, planned = set(detsets), {d for ds in plan.values() for d in ds}
+    if wanted - planned:
+        raise ValueError(f"detsets {sorted(wanted - planned)} are not simulated by this config "
+                         f"(it has {sorted(planned)})")
+    return {o: [d for d in ds if d in wanted] for o, ds in plan.items()}
 
 
 def simulate(config: SimConfig, output=None, overwrite=False, progress=True,

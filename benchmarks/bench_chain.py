@@ -42,10 +42,11 @@ from sotodlib.preprocess import Pipeline  # noqa: E402
 from sotodlib.tod_ops import fft_ops, filters  # noqa: E402
 
 import so_transients  # noqa: E402,F401  registers the steps and the loader
-from so_transients.bands import ARCMIN, fwhm_to_sigma  # noqa: E402
+from so_transients.angles import ARCMIN  # noqa: E402
+from so_transients.bands import fwhm_to_sigma  # noqa: E402
 from so_transients.matched_filter import (FilterConfig, butterworth_highpass,  # noqa: E402
                                           gaussian_template_spectrum)
-from so_transients.processes import scan_speed  # noqa: E402
+from so_transients.scan_geometry import scan_speed  # noqa: E402
 from so_transients.sim.config import SimConfig  # noqa: E402
 from so_transients.sim.simulate import simulate  # noqa: E402
 
@@ -199,7 +200,8 @@ def main(argv=None):
     cands = aman.transient_candidates
     reference = None
     if not args.skip_reference:
-        sigma_t = float(np.median(fwhm_to_sigma(2.2 * ARCMIN) / scan_speed(aman)))
+        sigma_t = float(np.median(fwhm_to_sigma(2.2 * ARCMIN) / scan_speed(aman.timestamps, aman.boresight.az,
+                                                                 aman.boresight.el)))
         reference = float(np.median([sotodlib_reference(aman, sigma_t)
                                      for _ in range(args.repeats)]))
     report(args, aman, signal_bytes, floors, chains, peaks, reference, cands)

@@ -13,7 +13,8 @@ from functools import lru_cache
 
 import numpy as np
 
-ARCMIN = np.pi / (180 * 60)
+from .angles import ARCMIN
+
 
 #: det_info bandpass name -> key in sotodlib's nominal hardware model.
 HARDWARE_BAND_KEY = {"f090": "LAT_f090", "f150": "LAT_f150", "f220": "LAT_f230", "f280": "LAT_f290"}
@@ -49,11 +50,6 @@ class Band:
         """Gaussian beam sigma in radians."""
         return fwhm_to_sigma(self.fwhm)
 
-    @property
-    def sigma_fwhm(self) -> float:
-        """The paper's clustering scale sigma_FWHM, in radians."""
-        return fwhm_to_sigma_fwhm(self.fwhm)
-
 
 @lru_cache(maxsize=1)
 def nominal_hardware():
@@ -69,3 +65,8 @@ def get_band(name: str) -> Band:
         raise ValueError(f"unknown band {name!r}; expected one of {sorted(HARDWARE_BAND_KEY)}")
     fwhm_arcmin = nominal_hardware().data["telescopes"]["LAT"]["fwhm"][HARDWARE_BAND_KEY[name]]
     return Band(name=name, fwhm=float(fwhm_arcmin) * ARCMIN, white_noise_mjy=WHITE_NOISE_MJY[name])
+
+
+def nominal_fwhm_arcmin() -> dict:
+    """Nominal beam FWHM (arcmin) of every band, from sotodlib's hardware model."""
+    return {name: get_band(name).fwhm / ARCMIN for name in HARDWARE_BAND_KEY}

@@ -6,6 +6,7 @@ Subcommands:
 * ``summary CONTEXT``: describe a dataset as loaded through its context.yaml;
 * ``site-config DATASET``: the transient site preprocess config pointed at a dataset;
 * ``catalog ARCHIVE_OR_CONFIG -o FILE``: every group's detections in one table (ECSV/FITS);
+* ``schema``: the candidate table's columns (name, step, unit, meaning) as Markdown;
 * ``campaign CONFIG``: an injection-recovery campaign (efficiency, thresholds, false positives);
 * ``demo``: the main job on built-in default data (``make demo``).
 """
@@ -51,6 +52,12 @@ def _catalog(args):
     table = archive_table(args.archive, detected_only=not args.all)
     path = write_table(table, args.out)
     print(f"{len(table)} {'candidates' if args.all else 'detections'} written to {path}")
+
+
+def _schema(args):
+    from .candidates import markdown
+
+    print(markdown())
 
 
 def _demo(args):
@@ -114,6 +121,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--all", action="store_true",
                    help="every candidate with its cut reason, not only detections")
     p.set_defaults(func=_catalog)
+
+    p = sub.add_parser("schema", help="the candidate columns (name, step, unit, meaning)")
+    p.set_defaults(func=_schema)
 
     p = sub.add_parser("campaign", help="injection-recovery campaign: efficiencies, detection "
                                         "thresholds, flux/pointing recovery, false positives")

@@ -13,7 +13,8 @@ saw its highest S/N:
   that a few detectors peaking on noise do not reject a bright source), and better than "all at
   one instant" whenever the detectors span enough of the scan direction to tell. This is what
   rejects readout glitches and cosmic rays that hit many detectors at once;
-* ``known_source``: no catalogued source within ``mask_radius`` (default sigma_FWHM).
+* ``known_source``: no source of the known-source list within ``mask_radius``
+  (default sigma_FWHM).
 
 The polarization flag (not a cut) marks candidates whose detectors mostly share one
 polarization orientation (within +-22.5 deg), as a strongly polarized source would produce.
@@ -28,6 +29,11 @@ import numpy as np
 from astropy import units as u
 from astropy.table import Table
 
+from . import candidates
+from .angles import ARCMIN, sky_separation
+from .robust import mad_std
+from .step_config import positive
+
 CUT_ORDER = ("n_dets", "aspect_ratio", "time_order", "known_source")
 
 
@@ -36,18 +42,28 @@ class CutsConfig:
     min_dets: int = 5
     min_aspect_ratio: float = 1.5
     time_tolerance: float = 0.02        # s, rms of peak times about the drift model
-    catalog: str | None = None          # ECSV/CSV file with ra, dec columns
-    catalog_unit: str = "deg"           # unit of ra/dec when the file does not carry one
-    mask_radius: float | None = None    # radians; None: sigma_FWHM of the band
+    known_sources: str | None = None    # ECSV/CSV file with ra, dec columns
+    known_sources_unit: str = "deg"     # unit of ra/dec when the file does not carry one
+    mask_radius_arcmin: float | None = None   # None: sigma_FWHM of the band
     pol_fraction: float = 0.8
 
+    def __post_init__(self):
+        positive("transient_cuts", min_dets=self.min_dets, min_aspect_ratio=self.min_aspect_ratio,
+                 time_tolerance=self.time_tolerance, mask_radius_arcmin=self.mask_radius_arcmin,
+                 pol_fraction=self.pol_fraction)
 
-def read_catalog(path, unit="deg"):
+    @property
+    def mask_radius(self):
+        """Known-source mask radius in radians, None for each band's sigma_FWHM."""
+        return None if self.mask_radius_arcmin is None else self.mask_radius_arcmin * ARCMIN
+
+
+def read_known_sources(path, unit="deg"):
     """RA, Dec (radians) of the sources in an ECSV or CSV file with ``ra`` and ``dec`` columns."""
     table = Table.read(path, format="ascii.ecsv" if str(path).endswith(".ecsv") else None)
     missing = {"ra", "dec"} - set(table.colnames)
     if missing:
-        raise ValueError(f"catalog {path} lacks columns {sorted(missing)}")
+        raise ValueError(f"known-source list {path} lacks columns {sorted(missing)}")
     out = []
     for name in ("ra", "dec"):
         col = table[name]
@@ -63,16 +79,10 @@ def line_extents(xi, eta, direction):
     return np.ptp(along), np.ptp(across), along
 
 
-def robust_rms(x):
-    """1.4826 x median absolute deviation: an rms that a few outliers do not inflate."""
-    x = np.asarray(x, float)
-    return float(1.4826 * np.median(np.abs(x - np.median(x)))) if len(x) else 0.0
-
-
 def time_order(t_peak, along, speed, tolerance):
     """(passes, robust rms about the drift model, robust rms about one instant)."""
-    r_drift = robust_rms(t_peak - along / speed)
-    r_instant = robust_rms(t_peak)
+    r_drift = float(mad_std(t_peak - along / speed))
+    r_instant = float(mad_std(t_peak))
     span = np.ptp(along) / abs(speed)
     passes = r_drift <= tolerance and (span <= 2 * tolerance or r_drift < r_instant)
     return passes, r_drift, r_instant
@@ -85,13 +95,12 @@ def dominant_orientation_fraction(gamma):
     return float(((diff <= np.radians(22.5)).sum(axis=1)).max() / len(theta)) if len(theta) else 0.0
 
 
-def near_catalog(ra, dec, cat_ra, cat_dec, radius):
-    """True where (ra, dec) lies within ``radius`` of any catalogue position (all radians)."""
-    if len(cat_ra) == 0 or len(ra) == 0:
+def near_known_source(ra, dec, known_ra, known_dec, radius):
+    """True where (ra, dec) lies within ``radius`` of any known source (all radians)."""
+    if len(known_ra) == 0 or len(ra) == 0:
         return np.zeros(len(ra), bool)
-    cosd = (np.sin(dec)[:, None] * np.sin(cat_dec)[None]
-            + np.cos(dec)[:, None] * np.cos(cat_dec)[None] * np.cos(ra[:, None] - cat_ra[None]))
-    return (np.arccos(np.clip(cosd, -1, 1)) <= radius).any(axis=1)
+    return (sky_separation(ra[:, None], dec[:, None], known_ra[None], known_dec[None])
+            <= radius).any(axis=1)
 
 
 def per_detector_peaks(hits, cand):
@@ -103,7 +112,7 @@ def per_detector_peaks(hits, cand):
 
 
 def apply_cuts(cands, hits, xi, eta, gamma, timestamps, drift, pitch, cfg: CutsConfig,
-               catalog=(np.zeros(0), np.zeros(0)), mask_radius=0.0):
+               known=(np.zeros(0), np.zeros(0)), mask_radius=0.0):
     """Evaluate every cut for every candidate.
 
     ``xi``, ``eta``, ``gamma``: focal plane of the group's detectors (indexed by ``hits['det']``);
@@ -116,7 +125,8 @@ def apply_cuts(cands, hits, xi, eta, gamma, timestamps, drift, pitch, cfg: CutsC
     out = {f"pass_{c}": np.zeros(n, bool) for c in CUT_ORDER}
     out.update(aspect_ratio=np.zeros(n), time_rms=np.zeros(n), instant_rms=np.zeros(n),
                pol_fraction=np.zeros(n), pol_flag=np.zeros(n, bool))
-    near = near_catalog(cands["ra"], cands["dec"], catalog[0], catalog[1], mask_radius)
+    near = near_known_source(cands["cluster_ra"], cands["cluster_dec"], known[0], known[1],
+                             mask_radius)
     for c in range(n):
         dets, samps = per_detector_peaks(hits, c)
         speed = float(np.hypot(*drift[c]))
@@ -134,6 +144,19 @@ def apply_cuts(cands, hits, xi, eta, gamma, timestamps, drift, pitch, cfg: CutsC
     reasons = np.full(n, "", dtype=object)
     for cut in reversed(CUT_ORDER):
         reasons[~out[f"pass_{cut}"]] = cut
-    out["cut_reason"] = reasons.astype(str) if n else np.zeros(0, "U12")
+    out["cut_reason"] = reasons.astype(str) if n else np.zeros(0, str)
     out["passed"] = np.all([out[f"pass_{c}"] for c in CUT_ORDER], axis=0) if n else np.zeros(0, bool)
     return out
+
+
+def cut_group_candidates(cands, hits, xi, eta, gamma, timestamps, drift, pitch, cfg: CutsConfig,
+                         known, radius_by_band):
+    """:func:`apply_cuts` on every band of a group's candidates, each band with its own
+    known-source mask radius (``radius_by_band``, radians); every ``transient_cuts`` column."""
+    drift = np.asarray(drift).reshape(len(cands["bandpass"]), 2)
+
+    def evaluate(band, sel, sub, sub_hits):
+        return apply_cuts(sub, sub_hits, xi, eta, gamma, timestamps, drift[sel], pitch, cfg,
+                          known, radius_by_band[band])
+    return candidates.check(candidates.by_band(cands, hits, evaluate, "transient_cuts"),
+                            "transient_cuts")

@@ -16,45 +16,9 @@ import numpy as np
 from astropy.table import Table
 from sotodlib import core
 
-from .matching import crossing_times, match
-from .pointing import boresight_quats
+from .matching import compare_with_truth
 from .results import archive_table, write_table
-from .site import archive_index, run_site_pipeline, write_site_config
-
-
-def failed_groups(config_path) -> str:
-    """Text of the site pipeline's errlog (failed groups), '' when none failed."""
-    errlog = archive_index(config_path).parent / "errlog.txt"
-    return errlog.read_text() if errlog.exists() else ""
-
-
-def group_crossings(context_path, flares: Table, fwhm_by_band: dict) -> dict:
-    """{(source_id, obs_id, wafer, band): crossing times} for every group of the dataset."""
-    ctx = core.Context(str(context_path))
-    out = {}
-    for obs in ctx.obsdb.query():
-        obs_id = obs["obs_id"]
-        for detset in ctx.obsfiledb.get_detsets(obs_id):
-            wafer, band = detset.split("_")
-            aman = ctx.get_obs(obs_id, dets={"wafer_slot": wafer, "bandpass": band},
-                               no_signal=True)
-            q = boresight_quats(aman.timestamps, aman.boresight.az, aman.boresight.el,
-                                aman.boresight.roll)
-            for fl in flares[flares["band"] == band]:
-                out[(int(fl["source_id"]), obs_id, wafer, band)] = crossing_times(
-                    np.asarray(aman.timestamps), q, np.asarray(aman.focal_plane.xi),
-                    np.asarray(aman.focal_plane.eta), fl, fwhm_by_band[band])
-    return out
-
-
-def compare_with_truth(dataset: Path, detections: Table) -> Table:
-    """Detections matched to the dataset's injected flares."""
-    from .bands import get_band
-
-    flares = Table.read(dataset / "truth" / "flares.ecsv")
-    fwhm = {b: get_band(b).fwhm for b in set(flares["band"])}
-    crossings = group_crossings(dataset / "context.yaml", flares, fwhm)
-    return match(detections, flares, crossings), flares, crossings
+from .site import failed_groups, run_site_pipeline, write_site_config
 
 
 def report(matched: Table, flares: Table, crossings: dict, t0: float) -> str:

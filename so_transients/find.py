@@ -8,6 +8,8 @@ possible source.
 
 Everything here works on plain arrays; the sky positions come from a callable so the caller
 decides how pointing is computed (see :func:`so_transients.pointing.radec_of_samples`).
+Candidates are dicts of arrays with the ``transient_find`` columns of
+:mod:`so_transients.candidates`.
 """
 from __future__ import annotations
 
@@ -16,23 +18,39 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
+from scipy import ndimage
 
+from . import candidates
+from .angles import ARCMIN
 from .dbscan import dbscan_labels
+from .scan_geometry import samples_in
+from .step_config import positive
 
 log = logging.getLogger(__name__)
-
-CANDIDATE_FIELDS = ("scan", "direction", "ra", "dec", "t_median", "t_start", "t_stop",
-                    "t_peak", "snr_max", "n_samples", "n_dets", "peak_det")
 
 
 @dataclass
 class FindConfig:
     snr_threshold: float = 3.0
-    eps: float | None = None          # DBSCAN scale (radians); None: sigma_FWHM of the band
+    eps_arcmin: float | None = None   # DBSCAN scale; None: sigma_FWHM of the band
     dbscan_min_samples: int = 5       # DBSCAN core-point neighbourhood (scikit-learn default)
     min_cluster_samples: int = 11     # "more than 10 samples"
     min_dets: int = 5                 # clusters on fewer detectors cannot pass the cuts
     max_candidates: int = 2000        # per group; the rest are dropped with a warning
+    speed_tolerance: float = 0.1      # samples scanning further off the nominal speed ...
+    turnaround_buffer: float = 2.0    # ... and this many s around them are not searched
+    archive_slots: int = 4            # catalogue cells per detector in the archive
+
+    def __post_init__(self):
+        positive("transient_find", dbscan_min_samples=self.dbscan_min_samples,
+                 min_cluster_samples=self.min_cluster_samples, min_dets=self.min_dets,
+                 max_candidates=self.max_candidates, speed_tolerance=self.speed_tolerance,
+                 archive_slots=self.archive_slots, eps_arcmin=self.eps_arcmin)
+
+    @property
+    def eps(self):
+        """The DBSCAN scale in radians, None for each band's sigma_FWHM."""
+        return None if self.eps_arcmin is None else self.eps_arcmin * ARCMIN
 
 
 def scan_segments(in_turnaround, az):
@@ -113,20 +131,26 @@ def mean_radec(ra, dec):
         float(np.arctan2(vec[2], np.hypot(vec[0], vec[1])))
 
 
-def find_candidates(snr, timestamps, scan, directions, radec, eps, cfg: FindConfig, rows=None):
+CLUSTER_FIELDS = ("scan", "direction", "cluster_ra", "cluster_dec", "t_median", "t_start",
+                  "t_stop", "t_peak", "snr_max", "n_samples", "n_dets", "peak_det")
+
+
+def find_candidates(snr, timestamps, scan, directions, radec, eps, cfg: FindConfig, rows=None,
+                    cap=None):
     """Cluster high-S/N samples into candidates.
 
     ``snr`` (ndet, nsamps), of which only ``rows`` (default all) are searched, and detector
     indices count within them; ``scan`` from :func:`scan_segments`; ``radec(dets, samps)``
     returns RA, Dec (radians) of the given samples; ``eps`` in radians. Returns
     ``(candidates, hits)``: dicts of arrays, one row per candidate (fields
-    :data:`CANDIDATE_FIELDS`) and one row per sample that belongs to a candidate (``cand``,
-    ``det``, ``samp``, ``snr``, ``ra``, ``dec``).
+    :data:`CLUSTER_FIELDS`) and one row per sample that belongs to a candidate (the columns
+    of :data:`so_transients.candidates.HIT_COLUMNS`), at most ``cap`` candidates (default
+    ``cfg.max_candidates``; ``cap=False``: no cap).
     """
     dets, samps, values = select_samples(snr, cfg.snr_threshold, scan >= 0, rows)
     ra, dec = radec(dets, samps)
-    cands = {k: [] for k in CANDIDATE_FIELDS}
-    hits = {k: [] for k in ("cand", "det", "samp", "snr", "ra", "dec")}
+    cands = {k: [] for k in CLUSTER_FIELDS}
+    hits = {k: [] for k in candidates.HIT_COLUMNS}
     for k in np.unique(scan[samps]):
         sel = np.flatnonzero(scan[samps] == k)
         if len(sel) < cfg.min_cluster_samples:
@@ -140,8 +164,11 @@ def find_candidates(snr, timestamps, scan, directions, radec, eps, cfg: FindConf
             _add_candidate(cands, hits, members, k, directions[k], dets, samps, values, ra, dec,
                            timestamps)
     cands = {k: np.asarray(v) for k, v in cands.items()}
-    hits = {k: np.asarray(v) for k, v in hits.items()}
-    return cap_candidates(cands, hits, cfg.max_candidates)
+    hits = {k: np.asarray(v, dtype) for (k, v), dtype in zip(hits.items(),
+                                                             candidates.HIT_COLUMNS.values())}
+    if cap is False:
+        return cands, hits
+    return cap_candidates(cands, hits, cfg.max_candidates if cap is None else cap)
 
 
 def _add_candidate(cands, hits, members, scan, direction, dets, samps, values, ra, dec, t):
@@ -149,16 +176,67 @@ def _add_candidate(cands, hits, members, scan, direction, dets, samps, values, r
     best = members[np.argmax(values[members])]
     times = t[samps[members]]
     c_ra, c_dec = mean_radec(ra[members], dec[members])
-    for key, value in (("scan", scan), ("direction", direction), ("ra", c_ra), ("dec", c_dec),
-                       ("t_median", np.median(times)), ("t_start", times.min()),
-                       ("t_stop", times.max()), ("t_peak", t[samps[best]]),
-                       ("snr_max", values[best]), ("n_samples", len(members)),
-                       ("n_dets", len(np.unique(dets[members]))), ("peak_det", dets[best])):
+    for key, value in (("scan", scan), ("direction", direction), ("cluster_ra", c_ra),
+                       ("cluster_dec", c_dec), ("t_median", np.median(times)),
+                       ("t_start", times.min()), ("t_stop", times.max()),
+                       ("t_peak", t[samps[best]]), ("snr_max", values[best]),
+                       ("n_samples", len(members)), ("n_dets", len(np.unique(dets[members]))),
+                       ("peak_det", dets[best])):
         cands[key].append(value)
     for key, value in (("det", dets[members]), ("samp", samps[members]),
                        ("snr", values[members]), ("ra", ra[members]), ("dec", dec[members])):
         hits[key].extend(value)
     hits["cand"].extend([cid] * len(members))
+
+
+def searchable_scans(in_turnaround, speed, nominal_speed, timestamps, az, cfg: FindConfig):
+    """Scan index per sample (-1 where nothing is searched) and each scan's direction.
+
+    Left out: samples flagged as turnaround (``in_turnaround``), samples whose on-sky
+    ``speed`` differs from ``nominal_speed`` by more than ``cfg.speed_tolerance``
+    (the template assumes the nominal speed), and ``cfg.turnaround_buffer`` seconds around
+    either (the high-pass rings for ~1/f_hp after the kink a turnaround leaves).
+    """
+    skip = (np.asarray(in_turnaround, bool)
+            | (np.abs(speed / nominal_speed - 1) > cfg.speed_tolerance))
+    n_buf = samples_in(timestamps, cfg.turnaround_buffer)
+    if n_buf and skip.any():
+        skip = ndimage.maximum_filter1d(skip.view(np.uint8), 2 * n_buf + 1).astype(bool)
+    return scan_segments(skip, np.asarray(az))
+
+
+def find_group_candidates(snr, timestamps, scan, directions, radec, bands, wafers, eps_by_band,
+                          cfg: FindConfig, cap, where=""):
+    """Candidates of a whole group (every band of it), at most ``cap`` of them (highest S/N).
+
+    ``bands``, ``wafers``: per detector (row of ``snr``); ``radec(dets, samps)`` with group
+    detector indices; ``eps_by_band``: DBSCAN scale (radians) per band. Returns
+    ``(candidates, hits)`` with every ``transient_find`` column of the schema, detector
+    indices counting in the group.
+    """
+    parts = []
+    for band in sorted(set(bands)):
+        dets = np.flatnonzero(bands == band)
+        c, h = find_candidates(snr, timestamps, scan, directions,
+                               lambda d, s, dets=dets: radec(dets[d], s), eps_by_band[band],
+                               cfg, rows=dets, cap=False)
+        c["peak_det"], h["det"] = dets[c["peak_det"].astype(int)], dets[h["det"]]
+        c["bandpass"] = np.full(len(c["scan"]), band)
+        c["wafer_slot"] = np.asarray(wafers)[c["peak_det"]]
+        parts.append((c, h))
+    if not parts:
+        return candidates.empty("transient_find"), candidates.empty_hits()
+    cands, hits = {}, {}
+    offset = 0
+    for c, h in parts:
+        h["cand"] = h["cand"] + offset
+        offset += len(c["scan"])
+        for store, part in ((cands, c), (hits, h)):
+            for k, v in part.items():
+                store[k] = np.concatenate([store[k], v]) if k in store else v
+    cands, hits = cap_candidates(cands, hits, cap, where)
+    cands["cand_id"] = np.arange(len(cands["scan"]))
+    return candidates.check(cands, "transient_find"), hits
 
 
 def cap_candidates(cands, hits, max_candidates, where=""):

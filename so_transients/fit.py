@@ -33,8 +33,11 @@ from functools import cached_property
 import numpy as np
 from scipy.interpolate import CubicHermiteSpline
 
-from . import spectral_ops
-from .matched_filter import mad_std
+from . import candidates, pointing, spectral_ops
+from .angles import DEG
+from .robust import mad_std
+from .scan_geometry import samples_in
+from .step_config import positive
 
 FIT_FIELDS = ("flux", "flux_err", "dxi", "deta", "dxi_err", "deta_err", "offset", "offset_err",
               "snr_fit", "chi2_red", "n_fit_samples", "n_fit_dets", "fit_ok")
@@ -43,11 +46,56 @@ FIT_FIELDS = ("flux", "flux_err", "dxi", "deta", "dxi_err", "deta_err", "offset"
 @dataclass
 class FitConfig:
     window: float = 0.5          # s, half-width of the time window around the median time
-    radius: float = np.radians(1.0)
+    radius_deg: float = 1.0      # samples within this distance of the candidate are fitted
     min_snr: float = 5.0         # keep A0 / sigma_A >= min_snr
     cross_scan_sigma: float = 6.0  # detectors passing within this many beam sigmas are fitted
     #                               (the 3 sigma position range plus 3 sigma of beam)
     n_null: int = 200            # random positions used to measure the error scale
+    seed: int = 0                # of the random null positions
+    error_scale: float | None = None   # fixed error scale (None: measured on the group)
+
+    def __post_init__(self):
+        positive("transient_fit", window=self.window, radius_deg=self.radius_deg,
+                 min_snr=self.min_snr, cross_scan_sigma=self.cross_scan_sigma,
+                 n_null=self.n_null, error_scale=self.error_scale)
+
+    @property
+    def radius(self):
+        return self.radius_deg * DEG
+
+
+@dataclass
+class FitInputs:
+    """What the fit reads of a group: pointing, the filter's S/N and its per-detector noise
+    and response (``transient_filter``'s output)."""
+
+    timestamps: np.ndarray
+    bore_q: np.ndarray           # (nsamps, 4) celestial boresight quaternions
+    xi: np.ndarray
+    eta: np.ndarray
+    snr: np.ndarray              # (ndet, nsamps), possibly memory-mapped
+    sigma_amp: np.ndarray        # (ndet,) amplitude noise, mJy
+    dead: np.ndarray             # (ndet,) bool
+    beam_sigma: np.ndarray       # (ndet,) rad
+    inflation: float             # the filter's correlated-sample error inflation
+    lags: np.ndarray             # the filter's response to a crossing ...
+    response: np.ndarray         # ... at these lags (s)
+
+    @classmethod
+    def from_aman(cls, aman):
+        """The inputs from an AxisManager that ``transient_filter`` has processed."""
+        summary = aman.transient_filter
+        return cls(np.asarray(aman.timestamps), pointing.boresight_q(aman),
+                   np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta),
+                   aman.transient_snr, np.asarray(summary.sigma_amp),
+                   np.asarray(summary.dead, bool), np.asarray(summary.beam_sigma),
+                   float(np.median(np.asarray(summary.fit_inflation))),
+                   np.asarray(summary.lag), np.asarray(summary.response))
+
+    def amplitude(self, dets, lo, hi):
+        """Amplitude (mJy) of detectors ``dets``, samples ``lo:hi``: S/N x sigma_amp."""
+        sigma = np.asarray(self.sigma_amp, np.float32)[dets]
+        return np.asarray(self.snr[dets, lo:hi]) * sigma[:, None]
 
 
 @dataclass
@@ -282,3 +330,118 @@ def null_scatter(windows, inflation=1.0):
     if len(ratios) < 10:
         return 1.0
     return float(mad_std(ratios))
+
+
+# ----------------------------------------------------------------------------- a group's fits
+
+def source_track(data: FitInputs, ra, dec, lo, hi):
+    """``(q, track)``: the boresight quaternions of samples ``lo:hi`` and the sky position's
+    path across the focal plane then (beam sigma still unset)."""
+    t = data.timestamps
+    q = data.bore_q[lo:hi]
+    xi, eta = pointing.source_in_focal_plane(q, ra, dec)
+    velocity = np.array([xi[-1] - xi[0], eta[-1] - eta[0]]) / (t[hi - 1] - t[lo])
+    speed = float(np.hypot(*velocity))
+    return q, Track(xi, eta, velocity / speed, speed, 0.0, data.lags, data.response)
+
+
+def fit_window(data: FitInputs, ra, dec, lo, hi, dets, cfg: FitConfig):
+    """The source's track over samples ``lo:hi`` and the detectors of ``dets`` that pass
+    within ``radius`` and ``cross_scan_sigma`` beam sigmas of it: ``(q, track, dets)``."""
+    q, track = source_track(data, ra, dec, lo, hi)
+    mid = (hi - lo) // 2
+    xi, eta = data.xi[dets], data.eta[dets]
+    near = pointing.angular_distance_xieta(xi, eta, track.xi[mid], track.eta[mid]) <= cfg.radius
+    track.sigma = float(np.median(data.beam_sigma[dets])) if len(dets) else 1.0
+    across = -(xi - track.xi[mid]) * track.along[1] + (eta - track.eta[mid]) * track.along[0]
+    return q, track, dets[near & (np.abs(across) <= cfg.cross_scan_sigma * track.sigma)]
+
+
+def window_arrays(data: FitInputs, track, dets, lo, hi):
+    """``(track, det_xi, det_eta, amp, sigma_amp)`` of detectors ``dets``, samples ``lo:hi``,
+    as :func:`fit_candidate` takes them."""
+    return track, data.xi[dets], data.eta[dets], data.amplitude(dets, lo, hi), data.sigma_amp[dets]
+
+
+def to_sky(q, xi0, eta0, res):
+    """RA/Dec and errors of the fitted focal-plane position at the window's centre."""
+    step = 1e-5
+    xs = xi0 + res["dxi"] + np.array([0.0, step, 0.0])
+    es = eta0 + res["deta"] + np.array([0.0, 0.0, step])
+    ra, dec = pointing.radec_of_samples(q, xs, es, [0, 1, 2], [0, 0, 0])
+    dra = np.angle(np.exp(1j * (ra[1:] - ra[0]))) * np.cos(dec[0]) / step
+    ddec = (dec[1:] - dec[0]) / step
+    cov = np.diag([res["dxi_err"] ** 2, res["deta_err"] ** 2])
+    jac = np.array([dra, ddec])
+    cov_sky = jac @ cov @ jac.T
+    return dict(ra=float(ra[0]), dec=float(dec[0]), ra_err=float(np.sqrt(cov_sky[0, 0])),
+                dec_err=float(np.sqrt(cov_sky[1, 1])))
+
+
+def fit_at(data: FitInputs, ra, dec, t_center, band_dets, error_scale, cfg: FitConfig):
+    """The beam fit of a candidate at (ra, dec) around ``t_center`` on the live detectors of
+    ``band_dets``: :func:`fit_candidate`'s dict plus RA/Dec and their errors ({} when the
+    window is too short)."""
+    lo, hi = np.searchsorted(data.timestamps, [t_center - cfg.window, t_center + cfg.window])
+    if hi - lo < 4:
+        return {}
+    live = band_dets[~data.dead[band_dets]]
+    q, track, dets = fit_window(data, ra, dec, lo, hi, live, cfg)
+    res = fit_candidate(*window_arrays(data, track, dets, lo, hi), data.inflation, error_scale)
+    res["error_scale"] = error_scale
+    if res["fit_ok"]:
+        mid = (hi - lo) // 2
+        res.update(to_sky(q[mid:mid + 1], track.xi[mid], track.eta[mid], res))
+    return res
+
+
+def measure_error_scale(data: FitInputs, band_dets, cand_times, cfg: FitConfig):
+    """Measured spread of the fitted amplitude at ``cfg.n_null`` random positions of the live
+    detectors of ``band_dets``, more than 2 s from ``cand_times`` (see :func:`null_scatter`)."""
+    dets = band_dets[~data.dead[band_dets]]
+    t = data.timestamps
+    rng = np.random.default_rng(cfg.seed)
+    n_win = samples_in(t, cfg.window)
+    lo_ok, hi_ok = n_win + 1, len(t) - n_win - 1
+    if not len(dets) or hi_ok <= lo_ok:
+        return 1.0
+    centers = rng.integers(lo_ok, hi_ok, size=4 * cfg.n_null)
+    far = np.min(np.abs(t[centers][:, None] - np.asarray(cand_times)[None, :]), axis=1,
+                 initial=np.inf) > 2.0
+    centers = centers[far][: cfg.n_null]
+    picks = rng.choice(dets, size=len(centers))
+    ra, dec = pointing.radec_of_samples(data.bore_q, data.xi, data.eta, picks, centers)
+    windows = []
+    for k, s in enumerate(centers):
+        lo, hi = s - n_win, s + n_win + 1
+        _, track, near = fit_window(data, ra[k], dec[k], lo, hi, dets, cfg)
+        windows.append(window_arrays(data, track, near, lo, hi))
+    return null_scatter(windows, data.inflation)
+
+
+OUTPUT_FIELDS = ("flux", "flux_err", "ra", "dec", "ra_err", "dec_err", "offset", "offset_err",
+                 "snr_fit", "chi2_red", "n_fit_samples", "n_fit_dets", "fit_ok", "error_scale")
+
+
+def fit_group_candidates(data: FitInputs, cands, det_bands, cfg: FitConfig):
+    """Fit every candidate of a group that passed the cuts (all when there is no ``passed``);
+    returns every ``transient_fit`` column. The error scale is ``cfg.error_scale`` or, per
+    band, measured at null positions that avoid only the candidates that passed the cuts
+    (avoiding every candidate would leave only the quietest stretches and bias it low)."""
+    n = len(cands["bandpass"])
+    passed = np.asarray(cands.get("passed", np.ones(n, bool)), bool)
+    scales = {b: cfg.error_scale or measure_error_scale(
+                  data, np.flatnonzero(det_bands == b), cands["t_median"][passed], cfg)
+              for b in np.unique(cands["bandpass"][passed])}
+    rows = [fit_at(data, cands["cluster_ra"][c], cands["cluster_dec"][c], cands["t_median"][c],
+                   np.flatnonzero(det_bands == cands["bandpass"][c]),
+                   scales[cands["bandpass"][c]], cfg) if passed[c] else {}
+            for c in range(n)]
+    schema = candidates.BY_NAME
+    out = {k: np.array([r.get(k, schema[k].fill) for r in rows], dtype=schema[k].dtype)
+           for k in OUTPUT_FIELDS}
+    fitted = out["fit_ok"]
+    out["ra"] = np.where(fitted, out["ra"], cands["cluster_ra"])
+    out["dec"] = np.where(fitted, out["dec"], cands["cluster_dec"])
+    out["detected"] = fitted & (np.nan_to_num(out["snr_fit"]) >= cfg.min_snr)
+    return candidates.check(out, "transient_fit")

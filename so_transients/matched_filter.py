@@ -40,15 +40,16 @@ import scipy.fft
 from tqdm.auto import tqdm
 
 from . import spectral_ops
-
-MAD_TO_SIGMA = 1.4826
-
+from .angles import ARCMIN
+from .bands import nominal_fwhm_arcmin
+from .robust import mad_std
 
 @dataclass
 class FilterConfig:
-    """Parameters of :func:`matched_filter` (times in seconds, frequencies in Hz)."""
+    """Parameters of :func:`matched_filter` (times in seconds, frequencies in Hz), and of the
+    ``transient_filter`` step around it (band field, beam widths, masked flags)."""
 
-    highpass: float | None = 1.23         # knee frequency; None: fit per detector
+    highpass: float | str | None = 1.23   # knee frequency; None (YAML: "fit"): fit per detector
     order: int = 4                         # Butterworth order
     white_band: tuple = (10.0, 30.0)       # band where the PSD is white, for the noise level
     bins_per_decade: int = 40              # PSD smoothing
@@ -59,6 +60,33 @@ class FilterConfig:
     source_mask_snr: float = 3.0           # ... masking samples above this S/N
     workers: int = 1                       # threads, each filtering its own chunks
     knee_bounds: tuple = (0.05, 10.0)      # limits of a fitted knee
+    bandpass_field: str = "bandpass"       # det_info field holding each detector's band
+    beam_fwhm_arcmin: dict = field(default_factory=dict)   # per band; nominal ones otherwise
+    mask_flags: list = field(default_factory=list)         # aman.flags fields to ignore
+
+    def __post_init__(self):
+        if self.highpass == "fit":
+            self.highpass = None
+        elif self.highpass is not None:
+            try:
+                self.highpass = float(self.highpass)
+            except ValueError:
+                raise ValueError(f"highpass must be a frequency in Hz or 'fit', got "
+                                 f"{self.highpass!r}") from None
+        for key in ("order", "bins_per_decade", "chunk_dets", "workers"):
+            if not getattr(self, key) > 0:
+                raise ValueError(f"{key} must be positive, got {getattr(self, key)}")
+        self.white_band = tuple(self.white_band)
+
+    def beam_fwhm(self, bands):
+        """Beam FWHM (radians) of detectors in ``bands``: the config's ``beam_fwhm_arcmin``
+        where it names the band, else the nominal one."""
+        table = {**nominal_fwhm_arcmin(), **self.beam_fwhm_arcmin}
+        unknown = sorted(set(bands) - set(table))
+        if unknown:
+            raise ValueError(f"no beam FWHM configured for bandpass {unknown}; add it to "
+                             f"beam_fwhm_arcmin")
+        return np.array([table[b] for b in bands], float) * ARCMIN
 
 
 @dataclass
@@ -77,7 +105,6 @@ class FilterResult:
     snr_scale: np.ndarray                   # measured / analytic S/N standard deviation
     dead: np.ndarray
     median_psd: np.ndarray = field(default=None)   # median smoothed PSD (|X|^2 units)
-    freqs: np.ndarray = field(default=None)
     nfft: int = 0
     psd_bins: np.ndarray = field(default=None)     # (ndet, nbins) binned PSD each row used
     psd_edges: np.ndarray = field(default=None)    # rfft indices of the bins' edges
@@ -148,14 +175,6 @@ def fit_knee(freqs, psd, white, bounds=(0.05, 10.0), white_lo=10.0, counts=None)
 def _fill_bad(x, bad):
     """Linear interpolation across bad samples of the rows of ``x``, in place."""
     spectral_ops.interpolate_runs(x, np.ascontiguousarray(bad))
-
-
-def mad_std(x, axis=-1):
-    """1.4826 x median absolute deviation along ``axis``: the standard deviation of Gaussian
-    noise, insensitive to a few outliers (sources)."""
-    x = np.asarray(x)
-    med = np.median(x, axis=axis, keepdims=True)
-    return MAD_TO_SIGMA * np.median(np.abs(x - med), axis=axis)
 
 
 def _grow(bad, n):
@@ -406,7 +425,7 @@ def matched_filter(signal, sample_rate, sigma_t, cfg: FilterConfig = FilterConfi
     median = expand_bins(np.median(np.concatenate(psds), axis=0), sp.edges)[0] if psds else None
     return FilterResult(snr=snr, noise_level=gather("noise_level"), fknee=gather("fknee"),
                         sigma_amp=gather("sigma_amp"), snr_scale=gather("snr_scale"),
-                        dead=gather("dead").astype(bool), median_psd=median, freqs=sp.freqs,
+                        dead=gather("dead").astype(bool), median_psd=median,
                         nfft=sp.nfft, psd_bins=gather("psd_all"), psd_edges=sp.edges,
                         snr_factor=gather("snr_factor"))
 

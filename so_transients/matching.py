@@ -8,16 +8,19 @@ the nearest detector. A slow flare is crossed in several scans; each crossing is
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from astropy import units as u
 from astropy.table import Table
 from scipy.spatial import cKDTree
+from sotodlib import core
 
-from .bands import fwhm_to_sigma
+from .angles import ARCMIN, sky_separation
+from .bands import fwhm_to_sigma, get_band
 from .lightcurve import active_window, flare_flux
-from .pointing import angular_distance_xieta, source_near
+from .pointing import angular_distance_xieta, boresight_quats, source_near
 
-ARCMIN = np.pi / (180 * 60)
 
 
 def crossing_times(timestamps, bore_q, det_xi, det_eta, flare, fwhm, min_gap=2.0, track=None):
@@ -62,12 +65,6 @@ def crossing_times(timestamps, bore_q, det_xi, det_eta, flare, fwhm, min_gap=2.0
     return np.array(times)
 
 
-def sky_separation(ra1, dec1, ra2, dec2):
-    """Great-circle distance (radians)."""
-    cosd = np.sin(dec1) * np.sin(dec2) + np.cos(dec1) * np.cos(dec2) * np.cos(ra1 - ra2)
-    return np.arccos(np.clip(cosd, -1, 1))
-
-
 def _rows_by_group(detections) -> dict:
     """{(obs_id, wafer_slot, bandpass): indices of the detections of that group}."""
     keys = zip(*(np.asarray(detections[k]).astype(str)
@@ -109,3 +106,30 @@ def match(detections: Table, flares: Table, crossings: dict, max_dt=0.5,
     out["dt"] = best_dt * u.s
     out["offset"] = best_off * u.rad
     return out
+
+
+def group_crossings(context_path, flares: Table, fwhm_by_band: dict) -> dict:
+    """{(source_id, obs_id, wafer, band): crossing times} for every group of the dataset."""
+    ctx = core.Context(str(context_path))
+    out = {}
+    for obs in ctx.obsdb.query():
+        obs_id = obs["obs_id"]
+        for detset in ctx.obsfiledb.get_detsets(obs_id):
+            wafer, band = detset.split("_")
+            aman = ctx.get_obs(obs_id, dets={"wafer_slot": wafer, "bandpass": band},
+                               no_signal=True)
+            q = boresight_quats(aman.timestamps, aman.boresight.az, aman.boresight.el,
+                                aman.boresight.roll)
+            for fl in flares[flares["band"] == band]:
+                out[(int(fl["source_id"]), obs_id, wafer, band)] = crossing_times(
+                    np.asarray(aman.timestamps), q, np.asarray(aman.focal_plane.xi),
+                    np.asarray(aman.focal_plane.eta), fl, fwhm_by_band[band])
+    return out
+
+
+def compare_with_truth(dataset: Path, detections: Table) -> Table:
+    """Detections matched to the dataset's injected flares."""
+    flares = Table.read(dataset / "truth" / "flares.ecsv")
+    fwhm = {b: get_band(b).fwhm for b in set(flares["band"])}
+    crossings = group_crossings(dataset / "context.yaml", flares, fwhm)
+    return match(detections, flares, crossings), flares, crossings

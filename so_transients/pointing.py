@@ -132,3 +132,21 @@ def horizon_offsets(xi, eta, el):
     q_bore = quat.rotation_lonlat(0.0, float(el))
     lon, lat, _ = quat.decompose_lonlat(q_bore * detector_quats(xi, eta))
     return -np.asarray(lon), np.asarray(lat)
+
+
+#: Field of an AxisManager where :func:`boresight_q` keeps the quaternions (never saved).
+BORE_Q = "transient_bore_q"
+
+
+def boresight_q(aman):
+    """Celestial boresight quaternion of every sample of ``aman``, (nsamps, 4), from its
+    standard ``timestamps`` and ``boresight`` (az, el, roll) fields, computed once per aman.
+
+    This is one quaternion per sample (25 MB for an hour at 220 Hz), not per detector; it is
+    kept in ``aman.transient_bore_q`` for the later steps.
+    """
+    if BORE_Q not in aman._fields:
+        roll = aman.boresight.roll if "roll" in aman.boresight._fields else None
+        q = boresight_quats(aman.timestamps, aman.boresight.az, aman.boresight.el, roll)
+        aman.wrap(BORE_Q, q, [(0, "samps")])
+    return np.asarray(aman[BORE_Q])

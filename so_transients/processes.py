@@ -6,11 +6,14 @@ listed after the standard steps of a site preprocess config (see
 
 ``transient_filter`` -> ``transient_find`` -> ``transient_cuts`` -> ``transient_fit``
 
-They read only standard SO AxisManager fields: ``signal``, ``timestamps``, ``boresight``
-(az, el, roll), ``focal_plane`` (xi, eta, gamma), ``det_info`` (the bandpass field named in
-the config), ``flags`` and ``obs_info``. Catalogues are saved on the detector axis (see
-:mod:`so_transients.catalog`) so that loading a whole observation concatenates every group's
-candidates; :mod:`so_transients.results` turns them into tables.
+Each step reads its config into its dataclass (:mod:`so_transients.step_config`) when the
+pipeline is built, checks the fields it reads (:mod:`so_transients.step_fields`: standard SO
+fields only), calls its core (:mod:`~so_transients.matched_filter`, :mod:`~so_transients.find`,
+:mod:`~so_transients.cuts`, :mod:`~so_transients.fit`) and stores the result. Candidates carry
+the columns of :mod:`so_transients.candidates`; they are saved on the detector axis
+(:mod:`so_transients.slot_storage`) so that loading a whole observation concatenates every
+group's candidates, and :mod:`so_transients.results` turns them into tables. Nothing but
+package registration imports this module.
 """
 from __future__ import annotations
 
@@ -18,201 +21,32 @@ import logging
 import warnings
 
 import numpy as np
-from scipy import ndimage
-from scipy.spatial import cKDTree
 from sotodlib import core
 from sotodlib.preprocess import Pipeline, _Preprocess
 from sotodlib.tod_ops import flags as tod_flags
 
-from . import catalog, pointing
-from .bands import ARCMIN, HARDWARE_BAND_KEY, fwhm_to_sigma, fwhm_to_sigma_fwhm, get_band
-from .cuts import CutsConfig, apply_cuts, read_catalog
-from .find import FindConfig, cap_candidates, find_candidates, scan_segments
-from .fit import FitConfig, Track, fit_candidate, null_scatter
+from . import candidates, pointing, scan_geometry, slot_storage
+from .bands import fwhm_to_sigma
+from .candidates import CAND_AXIS, HIT_AXIS
+from .cuts import CutsConfig, cut_group_candidates, read_known_sources
+from .find import FindConfig, find_group_candidates, searchable_scans
+from .fit import FitConfig, FitInputs, fit_group_candidates
 from .matched_filter import FilterConfig, filter_kernels, fit_error_inflation, matched_filter
+from .step_config import from_yaml
+from .step_fields import GroupName, require
 
 log = logging.getLogger(__name__)
-DEFAULT_FWHM_ARCMIN = {b: get_band(b).fwhm / ARCMIN for b in HARDWARE_BAND_KEY}
 LAG_AXIS = "transient_lag"
-CAND_AXIS = "transient_cand"
-HIT_AXIS = "transient_hit"
 PSD_BIN_AXIS = "transient_psd_bin"
 PSD_EDGE_AXIS = "transient_psd_edge"
+SLOTS = "archive_slots"      # scalar in aman.transient_candidates: find's archive slots
 
 
-# ----------------------------------------------------------------------------- helpers
-
-class describe:
-    """'obs_id (wafer, band)' of ``aman`` for error messages; worked out only when shown."""
-
-    def __init__(self, aman):
-        self.aman = aman
-
-    def __str__(self):
-        aman = self.aman
-        obs_id = aman.obs_info.obs_id if "obs_info" in aman else "unknown observation"
-        parts = []
-        if "det_info" in aman:
-            for key in ("wafer_slot", "bandpass"):
-                if key in aman.det_info._fields:
-                    parts.append(",".join(sorted(set(map(str, aman.det_info[key])))))
-        return f"{obs_id} ({', '.join(parts) or 'all detectors'})"
-
-
-def require(aman, step, *paths):
-    """Raise a ValueError naming the observation, group and missing fields."""
-    missing = []
-    for path in paths:
-        node = aman
-        for part in path.split("."):
-            if not isinstance(node, core.AxisManager) or part not in node._fields:
-                missing.append(path)
-                break
-            node = node[part]
-    if missing:
-        raise ValueError(f"{step}: {describe(aman)} lacks {', '.join(missing)}")
-
-
-def check_timestamps(aman, step):
-    """Timestamps must increase with a regular step (the filter works in Fourier space)."""
-    t = np.asarray(aman.timestamps)
-    dt = np.diff(t)
-    if len(t) < 2 or not np.all(np.isfinite(t)):
-        raise ValueError(f"{step}: {describe(aman)} has too few or non-finite timestamps")
-    if np.any(dt <= 0):
-        raise ValueError(f"{step}: {describe(aman)} timestamps are not strictly increasing "
-                         f"({np.sum(dt <= 0)} steps <= 0)")
-    step_med = np.median(dt)
-    if dt.max() > 1.5 * step_med:
-        raise ValueError(f"{step}: {describe(aman)} timestamps have gaps (largest step "
-                         f"{dt.max():.3f} s, nominal {step_med:.4f} s); fill or split the data")
-    return 1.0 / step_med
-
-
-def bandpasses(aman, field):
-    """Band name of every detector, from the det_info field ``field`` (dotted paths allowed)."""
-    node = aman.det_info
-    for part in field.split("."):
-        if part not in node._fields:
-            raise ValueError(f"{describe(aman)}: det_info has no field {field!r}")
-        node = node[part]
-    return np.asarray(node).astype(str)
-
-
-def fwhm_table(cfg):
-    """Beam FWHM per band (arcmin): the nominal ones updated by the config's
-    ``beam_fwhm_arcmin``, which is taken out of ``cfg``."""
-    return {**DEFAULT_FWHM_ARCMIN, **cfg.pop("beam_fwhm_arcmin", {})}
-
-
-def beam_fwhm(bands, table_arcmin, where):
-    unknown = sorted(set(bands) - set(table_arcmin))
-    if unknown:
-        raise ValueError(f"{where}: no beam FWHM configured for bandpass {unknown}; "
-                         f"add it to beam_fwhm_arcmin")
-    return np.array([table_arcmin[b] for b in bands]) * ARCMIN
-
-
-def sample_speed(aman):
-    """On-sky speed of the boresight at every sample (rad/s), from az and el."""
-    t = np.asarray(aman.timestamps)
-    daz = np.gradient(np.unwrap(np.asarray(aman.boresight.az)), t)
-    return np.abs(daz) * np.cos(np.asarray(aman.boresight.el))
-
-
-def scan_speed(aman):
-    """Median on-sky speed of the boresight (rad/s) while it scans."""
-    speed = sample_speed(aman)
-    moving = speed[speed > 0.5 * np.percentile(speed, 90)] if len(speed) else speed
-    if not len(moving) or np.median(moving) <= 0:
-        raise ValueError(f"{describe(aman)}: the boresight does not scan")
-    return float(np.median(moving))
-
-
-def boresight_mask(flag):
-    """Boolean (samps,) mask of a boresight flag: Ranges, RangesMatrix or array (for
-    per-detector flags, the first detector's, since they are the same for all)."""
-    mask = np.asarray(flag.mask() if hasattr(flag, "mask") else flag, bool)
-    return mask[0] if mask.ndim == 2 else mask
-
-
-BORE_Q = "transient_bore_q"
-
-
-def boresight_q(aman):
-    """Celestial boresight quaternion of every sample, (nsamps, 4), computed once per aman.
-
-    This is one quaternion per sample (25 MB for an hour at 220 Hz), not per detector; it is
-    kept in ``aman.transient_bore_q`` (not saved) for the later steps.
-    """
-    if BORE_Q not in aman._fields:
-        roll = aman.boresight.roll if "roll" in aman.boresight._fields else None
-        q = pointing.boresight_quats(aman.timestamps, aman.boresight.az, aman.boresight.el, roll)
-        aman.wrap(BORE_Q, q, [(0, "samps")])
-    return np.asarray(aman[BORE_Q])
-
-
-def sample_radec(aman, dets, samps):
-    """RA/Dec of chosen (detector, sample) pairs only."""
-    return pointing.radec_of_samples(boresight_q(aman), aman.focal_plane.xi,
-                                     aman.focal_plane.eta, dets, samps)
-
-
-def drift_velocity(aman, ra, dec, times, half_span=0.05):
-    """Velocity (rad/s) of sky positions across the focal plane at the given times, (n, 2)."""
-    q = boresight_q(aman)
-    t = np.asarray(aman.timestamps)
-    out = np.zeros((len(ra), 2))
-    for k in range(len(ra)):
-        i0, i1 = np.clip(np.searchsorted(t, [times[k] - half_span, times[k] + half_span]),
-                         0, len(t) - 1)
-        i1 = max(i1, min(i0 + 1, len(t) - 1))
-        xi, eta = pointing.source_in_focal_plane(q[[i0, i1]], ra[k], dec[k])
-        out[k] = np.array([xi[1] - xi[0], eta[1] - eta[0]]) / max(t[i1] - t[i0], 1e-9)
-    return out
-
-
-def amplitude(aman, dets=slice(None), lo=None, hi=None):
-    """Amplitude timestream (signal units) of detectors ``dets``, samples ``lo:hi``: the S/N
-    of ``transient_filter`` times each detector's ``sigma_amp``."""
-    sigma = np.asarray(aman.transient_filter.sigma_amp, np.float32)[dets]
-    return np.asarray(aman.transient_snr[dets, lo:hi]) * sigma[:, None]
-
-
-def detector_pitch(xi, eta):
-    """Median distance between neighbouring detector positions (radians)."""
-    pos = np.unique(np.round(np.c_[xi, eta], 12), axis=0)
-    if len(pos) < 2:
-        return float(np.radians(1.5 / 60))
-    dist, _ = cKDTree(pos).query(pos, k=2)
-    return float(np.median(dist[:, 1]))
-
-
-def _dict_to_aman(columns, axis_name, n):
-    """An AxisManager holding 1-d ``columns`` (each of length ``n``) on a new IndexAxis.
-
-    Equivalent to wrapping the columns one by one, in one step: each ``wrap`` merges, and a
-    merge restricts every field already present, so a catalogue of k columns would cost k^2
-    field restrictions (a third of a campaign's search time). The columns are assigned exactly
-    as ``AxisManager.wrap`` fills the helper it then merges.
-    """
-    out = core.AxisManager(core.IndexAxis(axis_name, n))
-    for name, values in columns.items():
-        values = np.asarray(values)
-        if values.ndim != 1 or len(values) != n:
-            raise ValueError(f"column {name!r} has shape {values.shape}, expected ({n},)")
-        out._fields[name] = values
-        out._assignments[name] = [axis_name]
-    return out
-
-
-def _set_columns(sub, columns, axis_name):
-    """Add (or replace) ``columns`` on axis ``axis_name`` of ``sub`` in one merge (a wrap per
-    column would restrict every field of ``sub`` once per column)."""
-    for name in [k for k in columns if k in sub._fields]:
-        sub.move(name, None)
-    sub.merge(_dict_to_aman(columns, axis_name, sub[axis_name].count),
-              restrict_in_place=True)
+def _register(cls):
+    """Register with sotodlib's Pipeline once (re-imports in workers are harmless)."""
+    if Pipeline.PIPELINE.get(cls.name) is None:
+        _Preprocess.register(cls)
+    return cls
 
 
 def _per_det(aman, columns):
@@ -222,29 +56,35 @@ def _per_det(aman, columns):
     return out
 
 
-def _table_from_aman(sub, axis):
-    return {k: np.asarray(sub[k]) for k in sub._fields if sub._assignments[k] == [axis]}
+def _replace(aman, name, value, axes=None):
+    """Wrap ``value`` as ``aman[name]``, replacing a field of that name (a rerun)."""
+    if name in aman._fields:
+        aman.move(name, None)
+    aman.wrap(name, value, axes)
 
 
-def _catalog_step_config(step):
-    """Calc config of a catalogue step minus the keys every such step shares."""
-    cfg = dict(step.calc_cfgs) if isinstance(step.calc_cfgs, dict) else {}
-    step.slots = int(cfg.pop("catalog_slots", 4))
-    step.bandpass_field = cfg.pop("bandpass_field", "bandpass")
-    return cfg
+def _sigma_fwhm_by_band(aman, bands):
+    """The paper's clustering scale sigma_FWHM = sqrt(2) beam sigma of each band, from the
+    beam sigma ``transient_filter`` stored per detector."""
+    beam_sigma = np.asarray(aman.transient_filter.beam_sigma)
+    return {b: float(np.sqrt(2) * np.median(beam_sigma[bands == b])) for b in np.unique(bands)}
 
 
-def _save_catalog(proc_aman, aman, name, columns, slots):
-    """Store per-candidate ``columns`` in ``proc_aman[name]``, on each candidate's peak detector."""
-    peak = np.asarray(aman.transient_candidates.peak_det).astype(int)
-    proc_aman.wrap(name, catalog.pack(proc_aman, columns, peak, slots))
+def _save_candidates(step, proc_aman, aman, columns):
+    """Store ``columns`` (with each candidate's ``cand_id``) in ``proc_aman[step.name]``, on
+    the detector where each candidate peaked."""
+    if not step.save_cfgs:
+        return
+    cands = aman.transient_candidates
+    columns = {"cand_id": np.asarray(cands.cand_id), **columns}
+    saved = {k: v for k, v in columns.items() if candidates.BY_NAME[k].saved}
+    proc_aman.wrap(step.name, slot_storage.pack(proc_aman, saved, np.asarray(cands.peak_det),
+                                                int(cands[SLOTS])))
 
 
-def _register(cls):
-    """Register with sotodlib's Pipeline once (re-imports in workers are harmless)."""
-    if Pipeline.PIPELINE.get(cls.name) is None:
-        _Preprocess.register(cls)
-    return cls
+def _step_config(step, cls, section):
+    """The step's YAML section (``process`` or ``calc``: a mapping, or true) as ``cls``."""
+    return from_yaml(cls, section if isinstance(section, dict) else {}, step.name)
 
 
 # ----------------------------------------------------------------------------- the steps
@@ -255,20 +95,22 @@ class TransientFilter(_Preprocess):
 
     ``process()`` computes, per detector, the S/N timestream ``aman.transient_snr`` (unit
     variance, verified by measurement; zero where nothing may be detected), plus
-    ``aman.transient_filter``: per-detector ``noise_level``, ``fknee``, ``sigma_amp``,
-    ``snr_scale``, ``dead``, ``sigma_t``, ``beam_sigma``, ``fit_inflation``, the filter's
-    response kernel (``lag``, ``response``) used by ``transient_fit``, and its noise weighting
-    (``psd_bins``, ``psd_edges``, ``snr_factor``, ``nfft``, ``order``) from which
-    :meth:`so_transients.injection.NoiseModel.from_aman` filters injected signals. The amplitude timestream
-    (signal units, mJy for point-source-calibrated data) is ``transient_snr * sigma_amp``;
-    :func:`amplitude` computes it for any block of detectors and samples, so the full array
-    never needs to be held. It runs again when the archive is loaded, so these are always
-    available. The template width is the beam sigma over the scan speed
-    measured from the boresight. Samples flagged in the ``aman.flags`` fields listed in
-    ``mask_flags`` (and non-finite ones) are ignored and can never be detected; do not list
-    glitch flags there, since bright transients are flagged as glitches.
+    ``aman.transient_filter``: per-detector ``bandpass``, ``noise_level``, ``fknee``,
+    ``sigma_amp``, ``snr_scale``, ``dead``, ``sigma_t``, ``beam_sigma``, ``fit_inflation``, the
+    filter's response kernel (``lag``, ``response``) used by ``transient_fit``, and its noise
+    weighting (``psd_bins``, ``psd_edges``, ``snr_factor``, ``nfft``, ``order``) from which
+    :meth:`so_transients.noise_model.NoiseModel.from_aman` filters injected signals. The later
+    steps read each detector's band and beam from here: they are configured once, in this
+    step. The amplitude timestream (signal units, mJy for point-source-calibrated data) is
+    ``transient_snr * sigma_amp``; :func:`so_transients.results.amplitude` computes it for any
+    block of detectors and samples, so the full array never needs to be held. It runs again
+    when the archive is loaded, so these are always available. The template width is the
+    beam sigma over the scan speed measured from the boresight. Samples flagged in the
+    ``aman.flags`` fields listed in ``mask_flags`` (and non-finite ones) are ignored and can
+    never be detected; do not list glitch flags there, since bright transients are flagged
+    as glitches.
 
-    Saved to the archive (``calc``/``save``): ``proc_aman.transient_filter`` with the
+    Saved to the archive (``calc``/``save``): ``proc_aman.transient_filter`` with the numeric
     per-detector fields above (not the kernel).
 
     Example config block::
@@ -293,47 +135,52 @@ class TransientFilter(_Preprocess):
 
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
-        cfg = dict(self.process_cfgs or {})
-        self.bandpass_field = cfg.pop("bandpass_field", "bandpass")
-        self.fwhm_table = fwhm_table(cfg)
-        self.mask_flags = list(cfg.pop("mask_flags", []))
-        highpass = cfg.pop("highpass", 1.23)
-        cfg["highpass"] = None if highpass == "fit" else float(highpass)
-        if "white_band" in cfg:
-            cfg["white_band"] = tuple(cfg["white_band"])
-        self.filter_cfg = FilterConfig(**cfg)
+        self.cfg = _step_config(self, FilterConfig, self.process_cfgs)
 
     def _mask(self, aman):
-        if not self.mask_flags:
+        if not self.cfg.mask_flags:
             return None
+        require(aman, self.name, [f"flags.{name}" for name in self.cfg.mask_flags])
         mask = np.zeros((aman.dets.count, aman.samps.count), bool)
-        for name in self.mask_flags:
-            require(aman, self.name, f"flags.{name}")
+        for name in self.cfg.mask_flags:
             flag = aman.flags[name]
             mask |= flag.mask() if hasattr(flag, "mask") else np.asarray(flag, bool)
         return mask
 
+    def _bandpasses(self, aman):
+        field = self.cfg.bandpass_field
+        node = aman.det_info
+        for part in field.split("."):
+            if part not in node._fields:
+                raise ValueError(f"{self.name}: {GroupName(aman)}: det_info has no field "
+                                 f"{field!r} (bandpass_field)")
+            node = node[part]
+        return np.asarray(node).astype(str)
+
     def process(self, aman, proc_aman, sim=False, data_aman=None):
-        require(aman, self.name, "signal", "timestamps", "boresight.az", "boresight.el",
-                "det_info")
-        fs = check_timestamps(aman, self.name)
-        bands = bandpasses(aman, self.bandpass_field)
-        beam_sigma = fwhm_to_sigma(beam_fwhm(bands, self.fwhm_table, describe(aman)))
-        sigma_t = beam_sigma / scan_speed(aman) if aman.dets.count else beam_sigma
-        res = matched_filter(aman.signal, fs, sigma_t, self.filter_cfg, mask=self._mask(aman))
-        for name in ("transient_snr", "transient_filter"):
-            if name in aman._fields:
-                aman.move(name, None)
-        aman.wrap("transient_snr", res.snr, [(0, "dets"), (1, "samps")])
-        aman.wrap("transient_filter", self._summary(aman, res, fs, sigma_t, beam_sigma))
+        require(aman, self.name)
+        where = f"{self.name}: {GroupName(aman)}"
+        fs = scan_geometry.sample_rate(aman.timestamps, where)
+        bands = self._bandpasses(aman)
+        try:
+            beam_sigma = fwhm_to_sigma(self.cfg.beam_fwhm(bands))
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from None
+        speed = (scan_geometry.scan_speed(aman.timestamps, aman.boresight.az, aman.boresight.el,
+                                          str(GroupName(aman))) if aman.dets.count else 1.0)
+        sigma_t = beam_sigma / speed
+        res = matched_filter(aman.signal, fs, sigma_t, self.cfg, mask=self._mask(aman))
+        _replace(aman, "transient_snr", res.snr, [(0, "dets"), (1, "samps")])
+        _replace(aman, "transient_filter", self._summary(aman, res, fs, sigma_t, beam_sigma, bands))
         return aman, proc_aman
 
-    def _summary(self, aman, res, fs, sigma_t, beam_sigma):
+    def _summary(self, aman, res, fs, sigma_t, beam_sigma, bands):
         lags, response, inflation = self._kernels(res, fs, sigma_t)
         out = _per_det(aman, dict(noise_level=res.noise_level, fknee=res.fknee,
                                   sigma_amp=res.sigma_amp, snr_scale=res.snr_scale,
                                   dead=res.dead, sigma_t=sigma_t, beam_sigma=beam_sigma,
-                                  fit_inflation=np.full(aman.dets.count, inflation)))
+                                  fit_inflation=np.full(aman.dets.count, inflation),
+                                  bandpass=bands))
         out.add_axis(core.IndexAxis(LAG_AXIS, len(lags)))
         out.wrap("lag", lags, [(0, LAG_AXIS)])
         out.wrap("response", response, [(0, LAG_AXIS)])
@@ -344,21 +191,20 @@ class TransientFilter(_Preprocess):
             out.wrap("psd_bins", np.asarray(res.psd_bins), [(0, "dets"), (1, PSD_BIN_AXIS)])
             out.wrap("snr_factor", np.asarray(res.snr_factor), [(0, "dets")])
             out.wrap("nfft", int(res.nfft))
-            out.wrap("order", int(self.filter_cfg.order))
+            out.wrap("order", int(self.cfg.order))
         return out
 
     def _kernels(self, res, fs, sigma_t):
         if res.median_psd is None:
-            lags = np.zeros(1)
-            return lags, np.ones(1), 1.0
+            return np.zeros(1), np.ones(1), 1.0
         live = ~res.dead
         lags, response, acf = filter_kernels(res.nfft, fs, float(np.median(sigma_t[live])),
                                              float(np.median(res.fknee[live])), res.median_psd,
-                                             self.filter_cfg.order)
+                                             self.cfg.order)
         return lags, response, fit_error_inflation(response, acf)
 
     def calc_and_save(self, aman, proc_aman):
-        require(aman, self.name, "transient_filter")
+        require(aman, self.name, ["transient_filter"])
         self.save(proc_aman, aman.transient_filter)
         return aman, proc_aman
 
@@ -366,7 +212,8 @@ class TransientFilter(_Preprocess):
         if not self.save_cfgs:
             return
         keep = _per_det(summary, {k: summary[k] for k in summary._fields
-                                  if summary._assignments[k] == ["dets"]})
+                                  if summary._assignments[k] == ["dets"]
+                                  and np.asarray(summary[k]).dtype.kind in "biuf"})
         proc_aman.wrap(self.name, keep)
 
 
@@ -374,26 +221,25 @@ class TransientFilter(_Preprocess):
 class TransientFind(_Preprocess):
     """Find candidate source crossings: S/N >= 3 samples clustered on the sky per scan.
 
-    Needs ``transient_filter`` before it. Scans are split at turnarounds from
-    ``aman.flags.turnarounds`` (sotodlib's ``flag_turnarounds`` step) when present, otherwise
-    computed with ``tod_ops.flags.get_turnaround_flags``. RA/Dec is computed only for the
-    selected samples (so3g quaternions). Samples where the scan speed differs from the
-    template's by more than ``speed_tolerance`` (the ends of turnarounds) are left out too,
-    and so are ``turnaround_buffer`` seconds on either side of them, where the high-pass filter
-    still rings from the turnaround.
-    DBSCAN clusters them per scan and band with
+    Needs ``transient_filter`` before it (each detector's band and beam come from there).
+    Scans are split at turnarounds from ``aman.flags.turnarounds`` (sotodlib's
+    ``flag_turnarounds`` step) when present, otherwise computed with
+    ``tod_ops.flags.get_turnaround_flags``. RA/Dec is computed only for the selected samples
+    (so3g quaternions). Samples where the scan speed differs from the template's by more than
+    ``speed_tolerance`` (the ends of turnarounds) are left out too, and so are
+    ``turnaround_buffer`` seconds on either side of them, where the high-pass filter still
+    rings from the turnaround. DBSCAN clusters them per scan and band with
     ``eps = sigma_FWHM = FWHM / (2 sqrt(ln 2))`` unless ``eps_arcmin`` is given; clusters of more
     than 10 samples on at least ``min_dets`` detectors become candidates (at most
     ``max_candidates`` per group, with a warning). Clusters on fewer detectors are almost all
     noise (thousands per hour) and could never pass ``transient_cuts``' detector-count cut, so
     they are not kept; set ``min_dets: 1`` to keep every cluster, as the paper's Table 1 counts.
 
-    In ``aman`` (for the next steps): ``transient_candidates`` (axis ``transient_cand``) and
-    ``transient_hits`` (axis ``transient_hit``: candidate, detector, sample, S/N, RA, Dec of
-    every clustered sample). Saved to the archive: ``proc_aman.transient_candidates``, a
-    catalogue on the detector axis (``so_transients.catalog``) with ``cand_id``, ``bandpass``,
-    ``scan``, ``direction``, ``ra``, ``dec`` (rad), ``t_median``, ``t_start``, ``t_stop``,
-    ``t_peak`` (ctime), ``snr_max``, ``n_samples``, ``n_dets``.
+    In ``aman`` (for the next steps): ``transient_candidates`` (axis ``transient_cand``, the
+    ``transient_find`` columns of :mod:`so_transients.candidates`) and ``transient_hits``
+    (axis ``transient_hit``: candidate, detector, sample, S/N, RA, Dec of every clustered
+    sample). Saved to the archive: ``proc_aman.transient_candidates``, the same columns on the
+    detector axis (:mod:`so_transients.slot_storage`, ``archive_slots`` cells per detector).
 
     Example config block::
 
@@ -407,7 +253,7 @@ class TransientFind(_Preprocess):
           max_candidates: 2000
           speed_tolerance: 0.1            # leave out samples scanning >10% off nominal speed
           turnaround_buffer: 2.0          # s left out around those samples
-          catalog_slots: 4                # catalogue cells per detector in the archive
+          archive_slots: 4                # candidate cells per detector in the archive
         save: true
     """
 
@@ -415,89 +261,50 @@ class TransientFind(_Preprocess):
 
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
-        cfg = _catalog_step_config(self)
-        self.fwhm_table = fwhm_table(cfg)
-        self.speed_tolerance = float(cfg.pop("speed_tolerance", 0.1))
-        self.turnaround_buffer = float(cfg.pop("turnaround_buffer", 2.0))
-        eps = cfg.pop("eps_arcmin", None)
-        self.find_cfg = FindConfig(eps=None if eps is None else eps * ARCMIN, **cfg)
+        self.cfg = _step_config(self, FindConfig, self.calc_cfgs)
+
+    @staticmethod
+    def _turnarounds(aman):
+        if "flags" in aman and "turnarounds" in aman.flags._fields:
+            return scan_geometry.boresight_mask(aman.flags.turnarounds)
+        try:
+            with warnings.catch_warnings():     # sotodlib warns on TODs shorter than a scan
+                warnings.simplefilter("ignore", RuntimeWarning)
+                ta, _, _ = tod_flags.get_turnaround_flags(aman, merge=False, merge_lr=False,
+                                                          merge_subscans=False)
+            return scan_geometry.boresight_mask(ta)
+        except (ValueError, IndexError):   # shorter than one scan: no turnaround to flag
+            return np.zeros(aman.samps.count, bool)
 
     def _scans(self, aman):
-        if "flags" in aman and "turnarounds" in aman.flags._fields:
-            ta = aman.flags.turnarounds
-        else:
-            try:
-                with warnings.catch_warnings():     # sotodlib warns on TODs shorter than a scan
-                    warnings.simplefilter("ignore", RuntimeWarning)
-                    ta, _, _ = tod_flags.get_turnaround_flags(aman, merge=False, merge_lr=False,
-                                                              merge_subscans=False)
-            except (ValueError, IndexError):   # shorter than one scan: no turnaround to flag
-                ta = np.zeros(aman.samps.count, bool)
-        in_ta = boresight_mask(ta)
-        # the template assumes the nominal scan speed: leave out samples far from it
-        in_ta = in_ta | (np.abs(sample_speed(aman) / scan_speed(aman) - 1) > self.speed_tolerance)
-        # the high-pass rings for ~1/f_hp after the kink a turnaround leaves in the atmosphere
-        n_buf = int(round(self.turnaround_buffer * (aman.samps.count - 1)
-                          / (aman.timestamps[-1] - aman.timestamps[0])))
-        if n_buf and in_ta.any():
-            in_ta = ndimage.maximum_filter1d(in_ta.view(np.uint8), 2 * n_buf + 1).astype(bool)
-        return scan_segments(in_ta, np.asarray(aman.boresight.az))
+        if not aman.dets.count:
+            return np.full(aman.samps.count, -1), np.zeros(0, int)
+        t, az, el = aman.timestamps, aman.boresight.az, aman.boresight.el
+        return searchable_scans(self._turnarounds(aman), scan_geometry.sample_speed(t, az, el),
+                                scan_geometry.scan_speed(t, az, el, str(GroupName(aman))),
+                                t, az, self.cfg)
 
     def calc_and_save(self, aman, proc_aman):
-        require(aman, self.name, "transient_snr", "focal_plane.xi", "focal_plane.eta",
-                "boresight.az", "boresight.el")
-        bands = bandpasses(aman, self.bandpass_field)
-        scan, directions = (self._scans(aman) if aman.dets.count
-                            else (np.full(aman.samps.count, -1), np.zeros(0, int)))
-        cands, hits = {}, {}
-        for band in sorted(set(bands)):
-            dets = np.flatnonzero(bands == band)
-            fwhm = beam_fwhm([band], self.fwhm_table, describe(aman))[0]
-            eps = self.find_cfg.eps or fwhm_to_sigma_fwhm(fwhm)
-            radec = lambda d, s, dets=dets: sample_radec(aman, dets[d], s)
-            c, h = find_candidates(aman.transient_snr, aman.timestamps, scan, directions,
-                                   radec, eps, self.find_cfg, rows=dets)
-            c["peak_det"], h["det"] = dets[c["peak_det"].astype(int)], dets[h["det"].astype(int)]
-            h["cand"] = h["cand"] + len(cands.get("scan", []))
-            c["bandpass"] = np.full(len(c["scan"]), band)
-            wafers = (np.asarray(aman.det_info.wafer_slot).astype(str)
-                      if "wafer_slot" in aman.det_info._fields else np.full(aman.dets.count, ""))
-            c["wafer_slot"] = wafers[c["peak_det"]]
-            for store, part in ((cands, c), (hits, h)):
-                for k, v in part.items():
-                    store[k] = np.concatenate([store[k], v]) if k in store else v
-        cands, hits = self._limit(aman, cands, hits)
-        self._wrap(aman, cands, hits)
-        self.save(proc_aman, aman)
+        require(aman, self.name)
+        bands = np.asarray(aman.transient_filter.bandpass).astype(str)
+        wafers = (np.asarray(aman.det_info.wafer_slot).astype(str)
+                  if "det_info" in aman and "wafer_slot" in aman.det_info._fields
+                  else np.full(aman.dets.count, ""))
+        eps = {b: self.cfg.eps or e for b, e in _sigma_fwhm_by_band(aman, bands).items()}
+        scan, directions = self._scans(aman)
+        q = pointing.boresight_q(aman)
+        xi, eta = aman.focal_plane.xi, aman.focal_plane.eta
+        radec = lambda d, s: pointing.radec_of_samples(q, xi, eta, d, s)
+        cap = min(self.cfg.max_candidates, aman.dets.count * self.cfg.archive_slots)
+        cands, hits = find_group_candidates(aman.transient_snr, aman.timestamps, scan,
+                                            directions, radec, bands, wafers, eps, self.cfg,
+                                            cap, str(GroupName(aman)))
+        table = candidates.to_aman(cands, CAND_AXIS, len(cands["scan"]))
+        table.wrap(SLOTS, int(self.cfg.archive_slots))
+        _replace(aman, "transient_candidates", table)
+        _replace(aman, "transient_hits", candidates.to_aman(hits, HIT_AXIS, len(hits["cand"])))
+        _save_candidates(self, proc_aman, aman, cands)
         return aman, proc_aman
-
-    def _limit(self, aman, cands, hits):
-        cap = min(self.find_cfg.max_candidates, catalog.capacity(aman.dets.count, self.slots))
-        if not cands:
-            return cands, hits
-        return cap_candidates(cands, hits, cap, describe(aman))
-
-    def _wrap(self, aman, cands, hits):
-        n = len(cands.get("scan", []))
-        if n == 0:
-            cands = {k: np.zeros(0) for k in ("scan", "direction", "ra", "dec", "t_median",
-                                              "t_start", "t_stop", "t_peak", "snr_max",
-                                              "n_samples", "n_dets", "peak_det")}
-            cands["bandpass"] = np.zeros(0, "U4")
-            cands["wafer_slot"] = np.zeros(0, "U4")
-            hits = {k: np.zeros(0) for k in ("cand", "det", "samp", "snr", "ra", "dec")}
-        for name in ("transient_candidates", "transient_hits"):
-            if name in aman._fields:
-                aman.move(name, None)
-        aman.wrap("transient_candidates", _dict_to_aman(cands, CAND_AXIS, n))
-        aman.wrap("transient_hits", _dict_to_aman(hits, HIT_AXIS, len(hits["cand"])))
-
-    def save(self, proc_aman, aman):
-        if not self.save_cfgs:
-            return
-        cands = _table_from_aman(aman.transient_candidates, CAND_AXIS)
-        cands.pop("peak_det")
-        _save_catalog(proc_aman, aman, "transient_candidates", cands, self.slots)
 
 
 @_register
@@ -508,13 +315,15 @@ class TransientCuts(_Preprocess):
     (focal-plane aspect ratio >= ``min_aspect_ratio``); hit times consistent with a source
     drifting across the array at the scan speed (rejects readout glitches and cosmic rays that
     hit many detectors at one instant); not within ``mask_radius_arcmin`` (default
-    sigma_FWHM) of a source in the ``catalog`` file (ECSV/CSV with ``ra``, ``dec``). Also sets a
-    polarization flag when the detectors mostly share one polarization orientation.
+    sigma_FWHM, from the beam ``transient_filter`` stored) of a source in the
+    ``known_sources`` file (ECSV/CSV with ``ra``, ``dec``). Also sets a polarization flag when
+    the detectors mostly share one polarization orientation.
 
-    In ``aman.transient_candidates``: ``pass_<cut>``, ``aspect_ratio``, ``time_rms``,
-    ``instant_rms``, ``pol_fraction``, ``pol_flag``, ``cut_reason`` (first failed cut, '' if
-    none) and ``passed``. Saved to the archive: ``proc_aman.transient_cuts``, the same columns
-    as a catalogue on the detector axis, keyed by ``cand_id``.
+    In ``aman.transient_candidates``: the ``transient_cuts`` columns of
+    :mod:`so_transients.candidates` (``pass_<cut>``, ``aspect_ratio``, ``time_rms``,
+    ``instant_rms``, ``pol_fraction``, ``pol_flag``, ``cut_reason``: first failed cut, '' if
+    none, ``passed``). Saved to the archive: ``proc_aman.transient_cuts``, the same columns on
+    the detector axis, keyed by ``cand_id``.
 
     Example config block::
 
@@ -523,8 +332,8 @@ class TransientCuts(_Preprocess):
           min_dets: 5
           min_aspect_ratio: 1.5
           time_tolerance: 0.02            # s
-          catalog: null                   # known sources, ECSV or CSV with ra, dec
-          catalog_unit: deg               # when the file's columns carry no unit
+          known_sources: null             # ECSV or CSV with ra, dec
+          known_sources_unit: deg         # when the file's columns carry no unit
           mask_radius_arcmin: null        # null: sigma_FWHM of the band
           pol_fraction: 0.8
         save: true
@@ -534,45 +343,27 @@ class TransientCuts(_Preprocess):
 
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
-        cfg = _catalog_step_config(self)
-        self.fwhm_table = fwhm_table(cfg)
-        radius = cfg.pop("mask_radius_arcmin", None)
-        self.cuts_cfg = CutsConfig(mask_radius=None if radius is None else radius * ARCMIN, **cfg)
-        self.known = (read_catalog(self.cuts_cfg.catalog, self.cuts_cfg.catalog_unit)
-                      if self.cuts_cfg.catalog else (np.zeros(0), np.zeros(0)))
+        self.cfg = _step_config(self, CutsConfig, self.calc_cfgs)
+        self.known = (read_known_sources(self.cfg.known_sources, self.cfg.known_sources_unit)
+                      if self.cfg.known_sources else (np.zeros(0), np.zeros(0)))
 
     def calc_and_save(self, aman, proc_aman):
-        require(aman, self.name, "transient_candidates", "transient_hits", "focal_plane.gamma")
-        cands = _table_from_aman(aman.transient_candidates, CAND_AXIS)
-        hits = _table_from_aman(aman.transient_hits, HIT_AXIS)
-        hits["cand"], hits["det"], hits["samp"] = (hits[k].astype(int) for k in ("cand", "det", "samp"))
-        n = len(cands["scan"])
-        drift = drift_velocity(aman, cands["ra"], cands["dec"], cands["t_median"]).reshape(n, 2)
+        require(aman, self.name)
+        cands = candidates.from_aman(aman.transient_candidates, CAND_AXIS)
+        hits = candidates.from_aman(aman.transient_hits, HIT_AXIS)
+        bands = np.asarray(aman.transient_filter.bandpass).astype(str)
+        radius = {b: self.cfg.mask_radius or r for b, r in _sigma_fwhm_by_band(aman, bands).items()}
+        drift = scan_geometry.drift_velocity(aman.timestamps, pointing.boresight_q(aman),
+                                             cands["cluster_ra"], cands["cluster_dec"],
+                                             cands["t_median"])
         fp = aman.focal_plane
         xi, eta, gamma = (np.asarray(fp[k]) for k in ("xi", "eta", "gamma"))
-        result = {}
-        for band in np.unique(cands["bandpass"]):
-            sel = np.flatnonzero(cands["bandpass"] == band)
-            fwhm = beam_fwhm([band], self.fwhm_table, describe(aman))[0]
-            radius = self.cuts_cfg.mask_radius or fwhm_to_sigma_fwhm(fwhm)
-            sub_hits = {k: v[np.isin(hits["cand"], sel)] for k, v in hits.items()}
-            sub_hits["cand"] = np.searchsorted(sel, sub_hits["cand"])
-            part = apply_cuts({k: v[sel] for k, v in cands.items()}, sub_hits, xi, eta, gamma,
-                              np.asarray(aman.timestamps), drift[sel], detector_pitch(xi, eta),
-                              self.cuts_cfg, self.known, radius)
-            for k, v in part.items():
-                result.setdefault(k, np.zeros(n, dtype=v.dtype if v.dtype.kind != "U" else "U12"))
-                result[k][sel] = v
-        if n == 0:
-            result = apply_cuts(cands, hits, xi, eta, gamma, aman.timestamps, drift, 1.0,
-                                self.cuts_cfg)
-        _set_columns(aman.transient_candidates, result, CAND_AXIS)
-        self.save(proc_aman, aman, result)
+        result = cut_group_candidates(cands, hits, xi, eta, gamma, np.asarray(aman.timestamps),
+                                      drift, scan_geometry.detector_pitch(xi, eta), self.cfg,
+                                      self.known, radius)
+        candidates.add_to_aman(aman.transient_candidates, result, CAND_AXIS)
+        _save_candidates(self, proc_aman, aman, result)
         return aman, proc_aman
-
-    def save(self, proc_aman, aman, result):
-        if self.save_cfgs:
-            _save_catalog(proc_aman, aman, self.name, result, self.slots)
 
 
 @_register
@@ -582,20 +373,19 @@ class TransientFit(_Preprocess):
     All samples of the group within ``window`` s of the candidate's median time and within
     ``radius_deg`` of its position, from detectors whose path passes within
     ``cross_scan_sigma`` beam sigmas of it (the others carry no beam signal), are fitted on the
-    amplitude timestream with
-    a bounded Levenberg-Marquardt fit (see :mod:`so_transients.fit`); a candidate is a detection when
-    ``A0 / sigma_A >= min_snr``. Errors are scaled by ``error_scale``, the measured spread of
-    the same fit at ``n_null`` random positions away from candidates (residual atmosphere is
-    correlated between neighbouring detectors, so the naive covariance is too small), unless
-    a fixed ``error_scale`` is configured (injection campaigns fix it from the noise-only data).
+    amplitude timestream with a bounded Levenberg-Marquardt fit (see :mod:`so_transients.fit`);
+    a candidate is a detection when ``A0 / sigma_A >= min_snr``. Errors are scaled by
+    ``error_scale``, the measured spread of the same fit at ``n_null`` random positions away
+    from candidates (residual atmosphere is correlated between neighbouring detectors, so the
+    naive covariance is too small), unless a fixed ``error_scale`` is configured (injection
+    campaigns fix it from the noise-only data).
 
     In ``aman.transient_candidates`` and saved to the archive as ``proc_aman.transient_fit``
-    (a catalogue on the detector axis keyed by ``cand_id``): ``flux``, ``flux_err`` (signal
-    units, mJy), ``ra``, ``dec``, ``ra_err``, ``dec_err`` (rad; ``ra_err`` is along RA on the
-    sky), ``offset``, ``offset_err`` (C), ``snr_fit``, ``chi2_red``, ``n_fit_samples``,
-    ``n_fit_dets``, ``fit_ok``, ``error_scale`` and ``detected``. Candidates that did not pass
-    the cuts keep NaN fit values and ``detected = False``. ``so-transients catalog`` collects
-    these into one table.
+    (on the detector axis, keyed by ``cand_id``): the ``transient_fit`` columns of
+    :mod:`so_transients.candidates` (``flux``, ``flux_err`` in mJy, ``ra``, ``dec``,
+    ``ra_err``, ``dec_err`` in rad, ``snr_fit``, ``detected``, ...). Candidates that did not
+    pass the cuts keep NaN fit values, their cluster position and ``detected = False``.
+    ``so-transients catalog`` collects these into one table.
 
     ``plot``: one PNG per detection (S/N of the contributing detectors around the event, and
     their positions on the focal plane) under the pipeline's ``plot_dir``.
@@ -619,130 +409,16 @@ class TransientFit(_Preprocess):
 
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
-        cfg = _catalog_step_config(self)
-        self.seed = int(cfg.pop("seed", 0))
-        scale = cfg.pop("error_scale", None)
-        self.fixed_error_scale = None if scale is None else float(scale)
-        radius = cfg.pop("radius_deg", 1.0)
-        self.fit_cfg = FitConfig(radius=np.radians(radius), **cfg)
+        self.cfg = _step_config(self, FitConfig, self.calc_cfgs)
 
     def calc_and_save(self, aman, proc_aman):
-        require(aman, self.name, "transient_candidates", "transient_snr", "transient_filter")
-        cands = _table_from_aman(aman.transient_candidates, CAND_AXIS)
-        n = len(cands["scan"])
-        passed = cands.get("passed", np.ones(n, bool)).astype(bool)
-        bands = bandpasses(aman, self.bandpass_field)
-        # nulls avoid only possible sources (candidates that passed the cuts): avoiding every
-        # candidate would leave only the quietest stretches and bias the scale low
-        scales = {b: self.fixed_error_scale or self.error_scale(
-                      aman, np.flatnonzero(bands == b), cands["t_median"][passed])
-                  for b in np.unique(cands["bandpass"][passed])}
-        rows = [self._fit_one(aman, cands, c, np.flatnonzero(bands == cands["bandpass"][c]),
-                              scales[cands["bandpass"][c]]) if passed[c] else {}
-                for c in range(n)]
-        fields = FIT_OUTPUT_FIELDS
-        result = {k: np.array([r.get(k, False if k == "fit_ok" else np.nan) for r in rows],
-                              dtype=bool if k == "fit_ok" else float) for k in fields}
-        result["detected"] = result["fit_ok"] & (np.nan_to_num(result["snr_fit"])
-                                                 >= self.fit_cfg.min_snr)
-        _set_columns(aman.transient_candidates,
-                     {(f"fit_{k}" if k in ("ra", "dec") else k): v for k, v in result.items()},
-                     CAND_AXIS)
-        self.save(proc_aman, aman, result)
+        require(aman, self.name)
+        cands = candidates.from_aman(aman.transient_candidates, CAND_AXIS)
+        bands = np.asarray(aman.transient_filter.bandpass).astype(str)
+        result = fit_group_candidates(FitInputs.from_aman(aman), cands, bands, self.cfg)
+        candidates.add_to_aman(aman.transient_candidates, result, CAND_AXIS)
+        _save_candidates(self, proc_aman, aman, result)
         return aman, proc_aman
-
-    def _window(self, aman, t_center):
-        t = np.asarray(aman.timestamps)
-        return tuple(np.searchsorted(t, [t_center - self.fit_cfg.window,
-                                         t_center + self.fit_cfg.window]))
-
-    def _track(self, aman, ra, dec, lo, hi):
-        t = np.asarray(aman.timestamps)
-        q = boresight_q(aman)[lo:hi]
-        xi, eta = pointing.source_in_focal_plane(q, ra, dec)
-        velocity = np.array([xi[-1] - xi[0], eta[-1] - eta[0]]) / (t[hi - 1] - t[lo])
-        speed = float(np.hypot(*velocity))
-        summary = aman.transient_filter
-        return q, Track(xi, eta, velocity / speed, speed, 0.0, np.asarray(summary.lag),
-                        np.asarray(summary.response))
-
-    def _fit_window(self, aman, ra, dec, lo, hi, dets):
-        """The source's track over samples ``lo:hi`` and the live detectors ``dets`` that pass
-        within ``radius`` and ``cross_scan_sigma`` beam sigmas of it: ``(q, track, dets)``."""
-        summary = aman.transient_filter
-        q, track = self._track(aman, ra, dec, lo, hi)
-        mid = (hi - lo) // 2
-        xi, eta = np.asarray(aman.focal_plane.xi)[dets], np.asarray(aman.focal_plane.eta)[dets]
-        near = pointing.angular_distance_xieta(xi, eta, track.xi[mid],
-                                               track.eta[mid]) <= self.fit_cfg.radius
-        track.sigma = float(np.median(np.asarray(summary.beam_sigma)[dets])) if len(dets) else 1.0
-        across = -(xi - track.xi[mid]) * track.along[1] + (eta - track.eta[mid]) * track.along[0]
-        return q, track, dets[near & (np.abs(across) <= self.fit_cfg.cross_scan_sigma * track.sigma)]
-
-    @staticmethod
-    def _window_data(aman, track, dets, lo, hi):
-        """``(track, det_xi, det_eta, amp, sigma_amp)`` of detectors ``dets``, samples ``lo:hi``."""
-        return (track, np.asarray(aman.focal_plane.xi)[dets], np.asarray(aman.focal_plane.eta)[dets],
-                amplitude(aman, dets, lo, hi), np.asarray(aman.transient_filter.sigma_amp)[dets])
-
-    def _fit_one(self, aman, cands, c, band_dets, error_scale):
-        summary = aman.transient_filter
-        lo, hi = self._window(aman, cands["t_median"][c])
-        if hi - lo < 4:
-            return {}
-        live = band_dets[~np.asarray(summary.dead)[band_dets]]
-        q, track, dets = self._fit_window(aman, cands["ra"][c], cands["dec"][c], lo, hi, live)
-        res = fit_candidate(*self._window_data(aman, track, dets, lo, hi),
-                            float(np.median(np.asarray(summary.fit_inflation))), error_scale)
-        res["error_scale"] = error_scale
-        if res["fit_ok"]:
-            mid = (hi - lo) // 2
-            res.update(self._to_sky(q[mid:mid + 1], track.xi[mid], track.eta[mid], res))
-        return res
-
-    @staticmethod
-    def _to_sky(q, xi0, eta0, res):
-        """RA/Dec and errors of the fitted focal-plane position at the window's centre."""
-        step = 1e-5
-        xs = xi0 + res["dxi"] + np.array([0.0, step, 0.0])
-        es = eta0 + res["deta"] + np.array([0.0, 0.0, step])
-        ra, dec = pointing.radec_of_samples(q, xs, es, [0, 1, 2], [0, 0, 0])
-        dra = np.angle(np.exp(1j * (ra[1:] - ra[0]))) * np.cos(dec[0]) / step
-        ddec = (dec[1:] - dec[0]) / step
-        cov = np.diag([res["dxi_err"] ** 2, res["deta_err"] ** 2])
-        jac = np.array([dra, ddec])
-        cov_sky = jac @ cov @ jac.T
-        return dict(ra=float(ra[0]), dec=float(dec[0]), ra_err=float(np.sqrt(cov_sky[0, 0])),
-                    dec_err=float(np.sqrt(cov_sky[1, 1])))
-
-    def error_scale(self, aman, band_dets, cand_times):
-        """Measured spread of the fitted amplitude at ``n_null`` random positions of detectors
-        ``band_dets``, more than 2 s from ``cand_times``."""
-        summary = aman.transient_filter
-        dets = band_dets[~np.asarray(summary.dead)[band_dets]]
-        t = np.asarray(aman.timestamps)
-        rng = np.random.default_rng(self.seed)
-        n_win = int(round(self.fit_cfg.window * (len(t) - 1) / (t[-1] - t[0])))
-        lo_ok, hi_ok = n_win + 1, len(t) - n_win - 1
-        if not len(dets) or hi_ok <= lo_ok:
-            return 1.0
-        centers = rng.integers(lo_ok, hi_ok, size=4 * self.fit_cfg.n_null)
-        far = np.min(np.abs(t[centers][:, None] - np.asarray(cand_times)[None, :]), axis=1,
-                     initial=np.inf) > 2.0
-        centers = centers[far][: self.fit_cfg.n_null]
-        picks = rng.choice(dets, size=len(centers))
-        ra, dec = sample_radec(aman, picks, centers)
-        windows = []
-        for k, s in enumerate(centers):
-            lo, hi = s - n_win, s + n_win + 1
-            _, track, near = self._fit_window(aman, ra[k], dec[k], lo, hi, dets)
-            windows.append(self._window_data(aman, track, near, lo, hi))
-        return null_scatter(windows, float(np.median(np.asarray(summary.fit_inflation))))
-
-    def save(self, proc_aman, aman, result):
-        if self.save_cfgs:
-            renamed = {(f"fit_{k}" if k in ("ra", "dec") else k): v for k, v in result.items()}
-            _save_catalog(proc_aman, aman, self.name, renamed, self.slots)
 
     def plot(self, aman, proc_aman, filename):
         if not self.plot_cfgs:
@@ -755,8 +431,3 @@ class TransientFit(_Preprocess):
             name = name.replace("{obsid}", aman.obs_info.obs_id if "obs_info" in aman else "obs")
             name = name.replace("{name}", f"{cands.bandpass[c]}_transient_{c}")
             plot_detection(aman, c, name)
-
-
-FIT_OUTPUT_FIELDS = ("flux", "flux_err", "ra", "dec", "ra_err", "dec_err", "offset",
-                     "offset_err", "snr_fit", "chi2_red", "n_fit_samples", "n_fit_dets",
-                     "fit_ok", "error_scale")

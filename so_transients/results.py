@@ -5,10 +5,11 @@ Two ways in, both giving the same table:
 * :func:`archive_table` walks the archive's ManifestDb and loads each group's saved
   AxisManager on its own (how sotodlib stores per-group outputs);
 * :func:`observation_table` loads a whole observation through the Context (all groups
-  concatenated along ``dets``), which works because catalogues are stored on the detector axis
-  (:mod:`so_transients.catalog`).
+  concatenated along ``dets``), which works because candidates are stored on the detector axis
+  (:mod:`so_transients.slot_storage`).
 
-Columns carry units: mJy for fluxes, rad for positions, s (ctime) for times.
+The columns are those of :mod:`so_transients.candidates`, with their units (mJy for fluxes,
+rad for positions, s of ctime for times) and descriptions, after ``obs_id``.
 """
 from __future__ import annotations
 
@@ -16,63 +17,47 @@ import os
 from pathlib import Path
 
 import numpy as np
-from astropy import units as u
 from astropy.table import Table, vstack
 from sotodlib import core
 from sotodlib.core.metadata import ManifestDb
 
-from .catalog import unpack
+from . import candidates
 from .site import archive_index
+from .slot_storage import unpack
 
-CATALOGS = ("transient_candidates", "transient_cuts", "transient_fit")
-UNITS = {"ra": u.rad, "dec": u.rad, "ra_err": u.rad, "dec_err": u.rad, "flux": u.mJy,
-         "flux_err": u.mJy, "offset": u.mJy, "offset_err": u.mJy, "t_peak": u.s,
-         "t_median": u.s, "t_start": u.s, "t_stop": u.s, "cand_ra": u.rad, "cand_dec": u.rad}
-FIRST = ["obs_id", "wafer_slot", "bandpass", "cand_id", "scan", "direction", "t_peak", "ra",
-         "dec", "flux", "flux_err", "ra_err", "dec_err", "snr_fit", "offset", "offset_err",
-         "n_dets", "n_samples", "chi2_red", "pol_flag", "detected", "cut_reason"]
+#: Columns of every table read back, in order.
+FIRST = ["obs_id"] + candidates.names(saved=True)
+
+
+def amplitude(aman, dets=slice(None), lo=None, hi=None):
+    """Amplitude timestream (signal units, mJy) of detectors ``dets``, samples ``lo:hi``: the
+    S/N of ``transient_filter`` times each detector's ``sigma_amp``."""
+    sigma = np.asarray(aman.transient_filter.sigma_amp, np.float32)[dets]
+    return np.asarray(aman.transient_snr[dets, lo:hi]) * sigma[:, None]
 
 
 def _empty_table() -> Table:
-    dtypes = {"obs_id": "U64", "wafer_slot": "U8", "bandpass": "U8", "cut_reason": "U12",
-              "pol_flag": bool, "detected": bool, "cand_id": int, "scan": int,
-              "direction": int, "n_dets": int, "n_samples": int}
-    table = Table([np.zeros(0, dtypes.get(c, float)) for c in FIRST], names=FIRST)
-    for name, unit in UNITS.items():
-        if name in table.colnames:
-            table[name].unit = unit
-    return table
+    return candidates.table({"obs_id": np.zeros(0, str), **candidates.empty()}, first=["obs_id"])
 
 
 def proc_table(proc_aman, obs_id="", wafer_slot=None) -> Table:
     """Rows of every candidate stored in ``proc_aman`` (one group or several concatenated)."""
-    if "transient_candidates" not in proc_aman._fields:
-        return _empty_table()
-    parts = {name: unpack(proc_aman[name]) for name in CATALOGS if name in proc_aman._fields}
-    base = parts["transient_candidates"]
-    if not len(base["cand_id"]):
+    parts = {name: unpack(proc_aman[name]) for name in candidates.STEPS
+             if name in proc_aman._fields}
+    base = parts.get("transient_find")
+    if base is None or not len(base["cand_id"]):
         return _empty_table()
     rows = {}
     for name, part in parts.items():
         if not np.array_equal(part["cand_id"], base["cand_id"]):
-            raise ValueError(f"{obs_id}: {name} is not aligned with transient_candidates")
+            raise ValueError(f"{obs_id}: {name} is not aligned with transient_find")
         rows.update(part)
     rows.pop("det")
     n = len(base["cand_id"])
-    rows["obs_id"] = np.full(n, obs_id, dtype="U64")
+    rows["obs_id"] = np.full(n, obs_id)
     if "wafer_slot" not in rows:
-        rows["wafer_slot"] = np.full(n, wafer_slot or "", dtype="U8")
-    table = Table(rows)
-    table.rename_columns(["ra", "dec"], ["cand_ra", "cand_dec"])
-    fitted = np.asarray(table["fit_ok"], bool) if "fit_ok" in table.colnames else np.zeros(n, bool)
-    for key in ("ra", "dec"):   # the fitted position when there is one, else the cluster mean
-        source = table[f"fit_{key}"] if f"fit_{key}" in table.colnames else table[f"cand_{key}"]
-        table[key] = np.where(fitted, source, table[f"cand_{key}"])
-    for name, unit in UNITS.items():
-        if name in table.colnames:
-            table[name].unit = unit
-    order = [c for c in FIRST if c in table.colnames]
-    return table[order + [c for c in table.colnames if c not in order]]
+        rows["wafer_slot"] = np.full(n, wafer_slot or "")
+    return candidates.table(rows, first=["obs_id"])
 
 
 def archive_entries(index_path):

@@ -88,3 +88,9 @@ def run_site_pipeline(config_path, nproc=1, extra_args=(), check=True):
            "--nproc", str(nproc), "--verbosity", "1",
            "--pb-path", str(archive_dir), *extra_args]
     return subprocess.run(cmd, env=env, check=check, capture_output=True, text=True)
+
+
+def failed_groups(config_path) -> str:
+    """Text of the site pipeline's errlog (failed groups), '' when none failed."""
+    errlog = archive_index(config_path).parent / "errlog.txt"
+    return errlog.read_text() if errlog.exists() else ""

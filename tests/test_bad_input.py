@@ -4,8 +4,7 @@ import pytest
 from sotodlib import core
 from sotodlib.preprocess import Pipeline
 
-from so_transients.processes import amplitude
-from so_transients.results import FIRST, proc_table
+from so_transients.results import FIRST, amplitude, proc_table
 
 from conftest import run_sim
 

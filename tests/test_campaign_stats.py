@@ -9,7 +9,8 @@ from so_transients.campaign.config import Cell, flux_grid, load_campaign
 from so_transients.campaign.run import check_state, split_flares
 from so_transients.campaign.stats import binomial_interval, monotone, threshold, thresholds
 from so_transients.matched_filter import FilterConfig, matched_filter
-from so_transients.matching import ARCMIN, match
+from so_transients.angles import ARCMIN
+from so_transients.matching import match
 from test_matched_filter import FS, SIGMA_T, red_noise
 
 GRID = np.arange(100.0, 1000.0, 100.0)

@@ -3,12 +3,12 @@ import numpy as np
 import pytest
 from sotodlib import core
 
-from so_transients import catalog
+from so_transients import slot_storage
 from so_transients.cuts import CutsConfig, apply_cuts, dominant_orientation_fraction, time_order
 from so_transients.find import FindConfig, find_candidates, scan_segments
 from so_transients.fit import Track, fit_candidate, null_scatter
+from so_transients.angles import ARCMIN
 
-ARCMIN = np.pi / 180 / 60
 PITCH = 1.574 * ARCMIN
 SPEED = np.radians(1.0)          # 1 deg/s
 
@@ -43,7 +43,7 @@ def test_dbscan_groups_a_source_and_ignores_scattered_noise():
     assert len(cands["scan"]) == 1
     assert cands["n_samples"][0] == 24 and cands["n_dets"][0] == 6
     assert set(hits["det"]) == set(range(10, 16))
-    assert np.isclose(cands["dec"][0], 12.5 * PITCH)
+    assert np.isclose(cands["cluster_dec"][0], 12.5 * PITCH)
 
 
 def test_clusters_of_ten_samples_or_fewer_are_dropped():
@@ -86,7 +86,7 @@ def _row_of_detectors(n, across=0.0):
 def _candidate(dets, samps, snr=5.0):
     hits = {"cand": np.zeros(len(dets), int), "det": np.asarray(dets),
             "samp": np.asarray(samps), "snr": np.full(len(dets), snr)}
-    cands = {"scan": np.zeros(1, int), "ra": np.zeros(1), "dec": np.zeros(1)}
+    cands = {"scan": np.zeros(1, int), "cluster_ra": np.zeros(1), "cluster_dec": np.zeros(1)}
     return cands, hits
 
 
@@ -130,12 +130,12 @@ def test_known_sources_are_masked():
     xi, eta, gamma = _row_of_detectors(8)
     samps = 2000 + np.round(xi / SPEED * 220).astype(int)
     cands, hits = _candidate(range(8), samps)
-    cands["ra"][0], cands["dec"][0] = 1.0, -0.5
+    cands["cluster_ra"][0], cands["cluster_dec"][0] = 1.0, -0.5
     args = (cands, hits, xi, eta, gamma, np.arange(10000) / 220.0, np.array([[SPEED, 0.0]]),
             PITCH, CutsConfig())
-    inside = apply_cuts(*args, catalog=(np.array([1.0 + 0.5 * ARCMIN / np.cos(0.5)]),
+    inside = apply_cuts(*args, known=(np.array([1.0 + 0.5 * ARCMIN / np.cos(0.5)]),
                                         np.array([-0.5])), mask_radius=1.32 * ARCMIN)
-    outside = apply_cuts(*args, catalog=(np.array([1.0 + 2 * ARCMIN / np.cos(0.5)]),
+    outside = apply_cuts(*args, known=(np.array([1.0 + 2 * ARCMIN / np.cos(0.5)]),
                                          np.array([-0.5])), mask_radius=1.32 * ARCMIN)
     assert inside["cut_reason"][0] == "known_source"
     assert outside["passed"][0]
@@ -203,11 +203,11 @@ def test_catalogue_slots_survive_concatenation_of_groups():
     def group(names, n_cand):
         aman = core.AxisManager(core.LabelAxis("dets", names))
         cols = {"flux": np.arange(n_cand) * 10.0, "band": np.array(["f090"] * n_cand)}
-        return catalog.pack(aman, cols, preferred_rows=np.zeros(n_cand, int), n_slots=2)
+        return slot_storage.pack(aman, cols, preferred_rows=np.zeros(n_cand, int), n_slots=2)
     a = group(["a0", "a1", "a2"], 5)        # 5 candidates all peaking on a0: spill over
     b = group(["b0", "b1"], 1)
     both = core.AxisManager.concatenate([a, b], axis="dets")
-    rows = catalog.unpack(both)
+    rows = slot_storage.unpack(both)
     assert sorted(rows["flux"]) == [0.0, 0.0, 10.0, 20.0, 30.0, 40.0]
     assert list(rows["det"]).count("a0") == 2 and "b0" in rows["det"]
     with pytest.raises(ValueError, match="do not fit"):

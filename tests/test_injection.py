@@ -1,7 +1,7 @@
 """The fast injection path agrees with filtering the injected data in full."""
 import numpy as np
 
-from so_transients.injection import NoiseModel, fft_length, filtered_snr
+from so_transients.noise_model import NoiseModel, fft_length, filtered_snr
 from so_transients.matched_filter import FilterConfig, matched_filter
 from test_matched_filter import FS, SIGMA_T, red_noise
 

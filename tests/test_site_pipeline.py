@@ -9,9 +9,9 @@ from astropy.table import Table
 from sotodlib import core
 from sotodlib.preprocess import preprocess_util as pp_util
 
-from so_transients.demo import compare_with_truth, failed_groups
+from so_transients.matching import compare_with_truth
 from so_transients.results import archive_entries, archive_table, observation_table
-from so_transients.site import run_site_pipeline, write_site_config
+from so_transients.site import failed_groups, run_site_pipeline, write_site_config
 
 from conftest import run_sim
 

@@ -10,6 +10,7 @@ resumed run never mixes results of different configs.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import json
@@ -21,7 +22,8 @@ import yaml
 
 from ..bands import WHITE_NOISE_MJY
 from ..sim.config import SimConfig
-from ..site import TEMPLATE
+from ..site import TEMPLATE, apply_overrides
+from .search_steps import split_pipe
 
 #: Rise times of the paper's grid (section 5.1), seconds.
 PAPER_RISE_TIMES = (0.5, 1.0, 2.5, 5.0, 15.0, 30.0, 150.0, 300.0)
@@ -118,6 +120,8 @@ class CampaignConfig:
             raise ValueError("campaign: n_flares and nproc must be >= 1")
         if not Path(self.preprocess).exists():
             raise FileNotFoundError(f"campaign preprocess config {self.preprocess} not found")
+        with open(self.preprocess) as f:
+            self.process_pipe = yaml.safe_load(f)["process_pipe"]   # read once
 
     @property
     def bands(self) -> list:
@@ -133,8 +137,7 @@ class CampaignConfig:
         data = dataclasses.asdict(self)
         data.pop("output")
         data.pop("nproc")
-        with open(self.preprocess) as f:
-            data["preprocess"] = yaml.safe_load(f)["process_pipe"]
+        data["preprocess"] = self.process_pipe
         text = json.dumps(data, sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -145,11 +148,16 @@ class CampaignConfig:
 
     def noise_digest(self) -> str:
         """Hash of what the noise-only observations depend on (simulation and preprocessing)."""
-        with open(self.preprocess) as f:
-            pipe = yaml.safe_load(f)["process_pipe"]
-        text = json.dumps([self.simulation, self.seed, pipe, self.preprocess_overrides],
+        text = json.dumps([self.simulation, self.seed, self.process_pipe,
+                           self.preprocess_overrides],
                           sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def pipeline_steps(self):
+        """(standard steps through transient_filter, search steps) of the preprocess config,
+        with the campaign's overrides applied (fresh copies: callers may change them)."""
+        pipe = apply_overrides(copy.deepcopy(self.process_pipe), self.preprocess_overrides)
+        return split_pipe(pipe)
 
 
 SECTIONS = {"matching": Matching, "injection": Injection, "full_check": FullCheck}

@@ -14,7 +14,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..bands import ARCMIN, fwhm_to_sigma, get_band  # noqa: E402
+from ..angles import ARCSEC  # noqa: E402
+from ..bands import fwhm_to_sigma, get_band  # noqa: E402
 from .stats import LEVELS  # noqa: E402
 
 
@@ -83,8 +84,8 @@ def plot_pointing(path, residuals):
     bands = sorted(set(residuals["bandpass"])) if len(residuals) else []
     fig, axes = _panels(bands)
     for ax, band in zip(axes, bands):
-        off = np.asarray(residuals["offset"][residuals["bandpass"] == band], float) / (ARCMIN / 60)
-        fwhm = get_band(band).fwhm / (ARCMIN / 60)
+        off = np.asarray(residuals["offset"][residuals["bandpass"] == band], float) / ARCSEC
+        fwhm = get_band(band).fwhm / ARCSEC
         ax.hist(off, bins=np.linspace(0, 30, 31), color="teal", alpha=0.8)
         ax.axvline(np.median(off), color="k", label=f"median {np.median(off):.1f}\"")
         ax.axvline(fwhm, color="0.4", ls="--", label=f"FWHM {fwhm:.0f}\"")
@@ -94,7 +95,7 @@ def plot_pointing(path, residuals):
     _save(fig, path)
 
 
-def write_figures(folder, eff, limits, residuals, noise_rms):
+def write_figures(folder, eff, residuals, noise_rms):
     plot_efficiency(folder / "efficiency.png", eff, noise_rms)
     plot_flux_residuals(folder / "flux_residuals.png", residuals)
     plot_pointing(folder / "pointing.png", residuals)

@@ -9,7 +9,7 @@ and the next one's start), and then:
   ``python -m sotodlib.site_pipeline.preprocess_tod`` runs the campaign's preprocess config on
   it; detections are read from the archive and matched as in ``make demo``;
 * **fast path**: the same flares (the simulated truth table) are injected one at a time into the
-  prepared noise-only groups (:mod:`.inject`).
+  prepared noise-only groups (:mod:`.flare_injection`).
 
 ``full_check.ecsv`` gives both efficiencies with 68 % intervals, the number of flares on which
 the two paths agree, and z = (full - fast) / combined binomial error.
@@ -21,19 +21,16 @@ from pathlib import Path
 import numpy as np
 from astropy.table import Table
 
-from ..demo import compare_with_truth, failed_groups
-from ..matching import ARCMIN
+from ..angles import ARCMIN, DEG
 from ..results import archive_table
 from ..sim.simulate import rng_for, simulate
 from ..sim.config import SimConfig
-from ..site import run_site_pipeline, write_site_config
-from .inject import draw_cell_flares
+from ..matching import compare_with_truth
+from ..site import failed_groups, run_site_pipeline, write_site_config
+from .flare_injection import draw_cell_flares
 from .noise import GroupState
-from .run import pipeline_steps
 from .stats import binomial_interval
-from .units import search_flares
-
-DEG = np.pi / 180
+from .work_units import search_flares
 
 
 def spaced_flares(cell, n, states, rng, separation):
@@ -80,8 +77,8 @@ def full_pipeline(cfg, folder: Path, flares, t0, progress):
 def check_cell(cfg, out: Path, folders: dict, cell, progress=True) -> dict:
     folder = out / "full_check" / cell.label
     obs_id = sorted({g.obs_id for g in folders})[0]
-    _, catalog = pipeline_steps(cfg)
-    states = [GroupState.load(g, f, catalog) for g, f in folders.items()
+    _, search = cfg.pipeline_steps()
+    states = [GroupState.load(g, f, search) for g, f in folders.items()
               if g.obs_id == obs_id and g.band == cell.band]
     rng = rng_for(cfg.seed, "full_check", cell.label)
     flares = spaced_flares(cell, cfg.full_check.n_flares, states, rng,

@@ -13,7 +13,7 @@ need is then kept on disk, under ``<output>/noise/groups/<group>/``:
   quaternions, focal plane, det_info, flags, ``transient_filter`` with the noise model);
 * ``info.json``: the fit's error scale measured on the noise, the duration and noise level;
 * ``false_noise.ecsv`` / ``false_inverted.ecsv`` and ``false_positives.json`` (their counts):
-  the detections of the catalogue steps run on the noise-only S/N and on its sign-inverted copy
+  the detections of the search steps run on the noise-only S/N and on its sign-inverted copy
   (the site pipeline on -TOD: every standard step and the filter are odd in the data, so its
   S/N is exactly minus this one). :func:`search_false_positives` makes them from the files
   above, so a campaign runs it in a worker while the next group is being prepared.
@@ -31,10 +31,12 @@ from astropy.table import Table
 from sotodlib import core
 from sotodlib.preprocess import Pipeline
 
-from ..injection import NoiseModel
-from ..processes import BORE_Q, boresight_q
+from .. import step_fields
+from ..fit import FitInputs, measure_error_scale
+from ..noise_model import NoiseModel
+from ..pointing import BORE_Q, boresight_q
 from ..sim.simulate import planned_detsets, simulate
-from .search import CatalogSearch
+from .search_steps import SEARCH_STEPS, SearchSteps, fit_config
 
 log = logging.getLogger(__name__)
 KEEP_FIELDS = ("timestamps", "boresight", "focal_plane", "det_info", "obs_info", "flags",
@@ -76,7 +78,7 @@ def simulate_group(sim_config, root, group: Group, digest: str) -> str:
     return str(result.context)
 
 
-def prepare_group(context, group: Group, standard_steps, catalog_steps, folder):
+def prepare_group(context, group: Group, standard_steps, search_steps, folder):
     """Filter one noise-only group, measure the fit's error scale and store the group's state
     in ``folder`` (see the module doc); returns ``info.json``'s content."""
     folder = Path(folder)
@@ -87,9 +89,9 @@ def prepare_group(context, group: Group, standard_steps, catalog_steps, folder):
     boresight_q(aman)
     duration = float(aman.timestamps[-1] - aman.timestamps[0])
     np.save(folder / "snr.npy", np.asarray(aman.transient_snr, np.float32))
-    probe = CatalogSearch(catalog_steps).steps[-1]
     live = np.flatnonzero(~np.asarray(aman.transient_filter.dead, bool))
-    scale = probe.error_scale(aman, live, np.zeros(0))
+    scale = measure_error_scale(FitInputs.from_aman(aman), live, np.zeros(0),
+                                fit_config(search_steps))
     for name in [n for n in aman._fields if n not in KEEP_FIELDS]:
         aman.move(name, None)
     aman.save(str(folder / "state.h5"), overwrite=True)
@@ -100,15 +102,15 @@ def prepare_group(context, group: Group, standard_steps, catalog_steps, folder):
     return info
 
 
-def search_false_positives(group: Group, folder, catalog_steps, inverted=True, stamp=""):
-    """Run the catalogue steps on a prepared group's noise-only S/N and on its sign-inverted
+def search_false_positives(group: Group, folder, search_steps, inverted=True, stamp=""):
+    """Run the search steps on a prepared group's noise-only S/N and on its sign-inverted
     copy; writes ``false_noise.ecsv``, ``false_inverted.ecsv`` and, last (it marks the search
     done), ``false_positives.json`` with their counts and ``stamp``. Returns the counts."""
     folder = Path(folder)
-    state = GroupState.load(group, folder, catalog_steps)
+    state = GroupState.load(group, folder, search_steps)
     aman = state.aman
     aman.wrap("transient_snr", np.array(state.snr), [(0, "dets"), (1, "samps")])   # a copy
-    search = CatalogSearch(catalog_steps, error_scale=state.error_scale)
+    search = SearchSteps(search_steps, error_scale=state.error_scale)
     noise = search.run(aman, group.obs_id)
     aman.transient_snr[:] *= -1
     flipped = search.run(aman, group.obs_id) if inverted else Table()
@@ -138,25 +140,14 @@ def group_info(folder) -> dict:
     return info
 
 
-#: What the catalogue steps read besides transient_snr; the rest is dropped from the group's
-#: AxisManager so that cutting a window out of it, and every merge into the window, stays cheap.
-WINDOW_FIELDS = {"flags": ("turnarounds",),
-                 "transient_filter": ("dead", "sigma_amp", "beam_sigma", "fit_inflation",
-                                      "lag", "response", "sigma_t"),
-                 "obs_info": ("obs_id",),
-                 "det_info": ("wafer_slot",)}
-
-
-def _slim(aman, catalog_steps):
-    """Drop what the catalogue steps never read (see :data:`WINDOW_FIELDS`); ``det_info`` keeps
-    the wafer and the bandpass fields the steps are configured with."""
-    bandpass = {s["calc"].get("bandpass_field", "bandpass") for s in catalog_steps
-                if isinstance(s.get("calc"), dict)} | {"bandpass"}
-    for name, keep in WINDOW_FIELDS.items():
-        if name not in aman._fields:
+def _slim(aman):
+    """Drop what the search steps never read (their declarations in
+    :mod:`so_transients.step_fields`), so that cutting a window out of the group's
+    AxisManager, and every merge into the window, stays cheap."""
+    for name, keep in step_fields.kept_fields(SEARCH_STEPS).items():
+        if name not in aman._fields or "*" in keep:
             continue
         sub = aman[name]
-        keep = set(keep) | (bandpass if name == "det_info" else set())
         for field in [f for f in sub._fields if f not in keep]:
             sub.move(field, None)
     if "iir_params" in aman._fields:
@@ -187,20 +178,20 @@ class GroupState:
     xi: np.ndarray
     eta: np.ndarray
     sigma_amp: np.ndarray
-    catalog_steps: list        # the config entries of the catalogue steps to run
+    search_steps: list         # the config entries of the search steps to run
 
     @classmethod
-    def load(cls, group: Group, folder, catalog_steps):
+    def load(cls, group: Group, folder, search_steps):
         folder = Path(folder)
         aman = core.AxisManager.load(str(folder / "state.h5"))
         info = group_info(folder)
         model = NoiseModel.from_aman(aman)
-        _slim(aman, catalog_steps)
+        _slim(aman)
         return cls(group, aman, _read_ahead(np.load(folder / "snr.npy", mmap_mode="r")),
                    model, info["error_scale"],
                    np.asarray(aman.timestamps), np.asarray(aman[BORE_Q]),
                    np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta),
-                   np.asarray(aman.transient_filter.sigma_amp), catalog_steps)
+                   np.asarray(aman.transient_filter.sigma_amp), search_steps)
 
     @property
     def footprint(self):

@@ -13,7 +13,8 @@ import numpy as np
 from astropy import units as u
 from astropy.table import Table
 
-from ..bands import ARCMIN, get_band
+from ..angles import ARCSEC
+from ..bands import get_band
 from .noise import group_info
 from .stats import LEVELS, binomial_interval, thresholds
 
@@ -27,7 +28,6 @@ PAPER_TABLE2 = {
     "f280": {0.5: (1250, 1900, 4250), 5: (800, 1100, 1900), 30: (750, 1000, 1500),
              150: (700, 1000, 1600)},
 }
-ARCSEC = ARCMIN / 60
 
 
 def efficiency_table(flares: Table) -> Table:
@@ -188,5 +188,5 @@ def write_results(cfg, folder, flares, detections, folders, check=None) -> Path:
             table.write(folder / f"{name}.ecsv", overwrite=True)
     (folder / "thresholds.md").write_text(thresholds_markdown(limits, eff))
     flares.write(folder / "flares.ecsv", overwrite=True)
-    write_figures(folder, eff, limits, residuals, noise_rms(folders))
+    write_figures(folder, eff, residuals, noise_rms(folders))
     return folder

@@ -24,17 +24,15 @@ import multiprocessing
 import shutil
 from pathlib import Path
 
-import yaml
 from astropy.table import Table, vstack
 from tqdm.auto import tqdm
 
-from ..site import apply_overrides
-
 from .config import CampaignConfig, Cell
+from .full_check import run_full_check
 from .noise import (campaign_groups, false_positives_done, prepare_group,
                     search_false_positives, simulate_group)
-from .search import split_pipe
-from .units import run_unit, unit_done, unit_paths
+from .report import write_results
+from .work_units import run_unit, unit_done, unit_paths
 
 log = logging.getLogger(__name__)
 
@@ -56,14 +54,6 @@ def check_state(cfg: CampaignConfig, out: Path, restart=False):
                                 default=str))
 
 
-def pipeline_steps(cfg):
-    """(standard steps through transient_filter, catalogue steps) of the preprocess config,
-    with the campaign's overrides applied."""
-    with open(cfg.preprocess) as f:
-        pipe = yaml.safe_load(f)["process_pipe"]
-    return split_pipe(apply_overrides(pipe, cfg.preprocess_overrides))
-
-
 def prepare_noise(cfg, out: Path, progress=True, pool=None):
     """Simulate and prepare every noise-only group that is missing; returns
     ``({Group: folder}, futures)``.
@@ -74,7 +64,7 @@ def prepare_noise(cfg, out: Path, progress=True, pool=None):
     and so is the false-positive search of a prepared group, which only reads its files;
     ``futures`` are those searches (empty without a pool: they ran here).
     """
-    standard, catalog = pipeline_steps(cfg)
+    standard, search = cfg.pipeline_steps()
     for step in standard:   # filter threads: as many as the campaign's processes
         if step["name"] == "transient_filter":
             step.setdefault("process", {}).setdefault("workers", cfg.nproc)
@@ -88,10 +78,10 @@ def prepare_noise(cfg, out: Path, progress=True, pool=None):
         folder = folders[group]
         if group in contexts:
             (folder / "digest.txt").unlink(missing_ok=True)
-            prepare_group(contexts[group](), group, standard, catalog, folder)
+            prepare_group(contexts[group](), group, standard, search, folder)
             (folder / "digest.txt").write_text(stamp)
         if not false_positives_done(folder, cfg.inverted, stamp):
-            args = (group, str(folder), catalog, cfg.inverted, stamp)
+            args = (group, str(folder), search, cfg.inverted, stamp)
             if pool is None:
                 search_false_positives(*args)
             else:
@@ -120,7 +110,7 @@ def split_flares(n, n_obs):
 
 def unit_specs(cfg, out: Path, folders: dict) -> list:
     """Every (cell, observation) work unit, as plain dicts."""
-    _, catalog = pipeline_steps(cfg)
+    _, search = cfg.pipeline_steps()
     digest = cfg.digest()
     specs = []
     obs_ids = sorted({g.obs_id for g in folders})
@@ -131,7 +121,7 @@ def unit_specs(cfg, out: Path, folders: dict) -> list:
                       if g.obs_id == obs_id and g.band == cell.band]
             if n and groups:
                 specs.append(dict(cell=dataclasses.asdict(cell), obs_id=obs_id, n=n,
-                                  first_id=first, groups=groups, catalog_steps=catalog,
+                                  first_id=first, groups=groups, search_steps=search,
                                   injection=dataclasses.asdict(cfg.injection),
                                   max_dt=cfg.matching.max_dt,
                                   max_offset_arcmin=cfg.matching.max_offset_arcmin,
@@ -192,8 +182,6 @@ def collect(specs):
 def run_campaign(cfg: CampaignConfig, restart=False, progress=True, pool=None,
                  as_completed=None) -> Path:
     """Run (or continue) ``cfg``; returns the results folder."""
-    from .report import write_results
-
     out = Path(cfg.output)
     check_state(cfg, out, restart)
     own = pool is None and cfg.nproc > 1
@@ -215,7 +203,6 @@ def run_campaign(cfg: CampaignConfig, restart=False, progress=True, pool=None,
     flares, detections = collect(specs)
     check = None
     if cfg.full_check.cells:
-        from .full_check import run_full_check
         check = run_full_check(cfg, out, folders, progress)
     return write_results(cfg, out / "results", flares, detections, folders, check)
 

@@ -1,14 +1,13 @@
-"""Candidate catalogues stored on the detector axis, so they survive sotodlib's concatenation.
+"""Candidate tables stored on the detector axis, so they survive sotodlib's concatenation.
 
 sotodlib saves one preprocess AxisManager per group (wafer x band) and, when a whole
-observation is loaded, concatenates the groups along ``dets``. A catalogue with its own axis
+observation is loaded, concatenates the groups along ``dets``. A table with its own axis
 would have a different length in each group and break that concatenation (or, with
-``other_fields='first'``, silently keep only the first group). So catalogues are stored in
-*slots* attached to detectors: every field is a ``(dets, transient_slot)`` array, and candidate
-``k`` occupies one (detector, slot) cell -- the cell of the detector where it peaked when free.
-``occupied`` marks used cells (sotodlib adds its own ``valid`` ranges to saved fields) and
-``cand_id`` numbers candidates within their group. Any
-concatenation of groups along ``dets`` then still holds every candidate of every group, and
+``other_fields='first'``, silently keep only the first group). So candidate tables are stored
+in *slots* attached to detectors: every field is a ``(dets, transient_slot)`` array, and
+candidate ``k`` occupies one (detector, slot) cell -- the cell of the detector where it peaked
+when free. ``occupied`` marks used cells (sotodlib adds its own ``valid`` ranges to saved
+fields); the steps store each candidate's ``cand_id`` with its columns. Any concatenation of groups along ``dets`` then still holds every candidate of every group, and
 :func:`unpack` turns it back into rows.
 """
 from __future__ import annotations
@@ -40,7 +39,7 @@ def capacity(n_dets, n_slots):
 
 
 def pack(axis_manager, columns: dict, preferred_rows, n_slots: int) -> core.AxisManager:
-    """AxisManager (``dets`` of ``axis_manager`` x slots) holding one catalogue row per candidate.
+    """AxisManager (``dets`` of ``axis_manager`` x slots) holding one row per candidate.
 
     ``columns``: name -> array of length ncand (numbers, bools or strings); ``preferred_rows``:
     detector index where each candidate should sit. Raises if there are more candidates than
@@ -56,9 +55,6 @@ def pack(axis_manager, columns: dict, preferred_rows, n_slots: int) -> core.Axis
     occupied = np.zeros((n_dets, n_slots), bool)
     occupied[rows, slots] = True
     out.wrap("occupied", occupied, [(0, "dets"), (1, SLOT_AXIS)])
-    cand_id = np.full((n_dets, n_slots), -1)
-    cand_id[rows, slots] = np.arange(ncand)
-    out.wrap("cand_id", cand_id, [(0, "dets"), (1, SLOT_AXIS)])
     for name, values in columns.items():
         values = np.asarray(values)
         if values.dtype.kind in "US":
@@ -75,7 +71,7 @@ def pack(axis_manager, columns: dict, preferred_rows, n_slots: int) -> core.Axis
 
 
 def unpack(packed: core.AxisManager, fields=None) -> dict:
-    """Rows of a packed catalogue (possibly several concatenated groups), ordered by
+    """Rows of a packed table (possibly several concatenated groups), ordered by
     detector then slot. Adds ``det`` (the readout id of the holding detector)."""
     occupied = np.asarray(packed.occupied, bool)
     rows, slots = np.nonzero(occupied)

@@ -1,6 +1,6 @@
 """Injecting one flare into the filtered noise of an observation and searching for it.
 
-The matched filter is linear once its noise weighting is fixed (:mod:`so_transients.injection`),
+The matched filter is linear once its noise weighting is fixed (:mod:`so_transients.noise_model`),
 so a flare's S/N in a group is the noise-only S/N plus the filter applied to the flare's signal
 alone. A crossing (one pass of the source over the group's footprint) touches the detectors for
 about a second, so only a window of a few seconds around it is built: the signal is computed
@@ -20,12 +20,12 @@ import numpy as np
 from astropy.table import Table
 
 from ..bands import fwhm_to_sigma, get_band
-from ..injection import filtered_snr
+from ..noise_model import filtered_snr
 from ..matching import crossing_times
-from ..processes import boresight_mask, detector_pitch
+from ..scan_geometry import boresight_mask, detector_pitch
 from ..sim.config import FlareConfig
 from ..sim.sources import PointingContext, SourceCrossing, add_sources, draw_flares, source_crossings
-from .search import stack
+from .search_steps import stack
 
 
 def draw_cell_flares(cell, n, states, rng) -> Table:

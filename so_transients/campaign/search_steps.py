@@ -1,40 +1,48 @@
-"""The catalogue steps of a site preprocess config, run in-process on an AxisManager.
+"""The search steps of a site preprocess config, run in-process on an AxisManager.
 
 A campaign runs ``transient_find``, ``transient_cuts`` and ``transient_fit`` exactly as the site
 pipeline configures them, but on AxisManagers it builds itself (a noise-only observation, a
 window around one injected crossing), without saving to an archive. Detections come back as an
-astropy table with the columns (and units) of ``so-transients catalog``.
+astropy table with columns (and units) of the candidate schema.
 """
 from __future__ import annotations
 
 import copy
 
 import numpy as np
-from astropy import units as u
 from astropy.table import Table, vstack
 from sotodlib import core
 from sotodlib.preprocess import Pipeline
 
-CATALOG_STEPS = ("transient_find", "transient_cuts", "transient_fit")
-DETECTION_COLUMNS = {  # detection column -> (transient_candidates field, unit)
-    "bandpass": ("bandpass", None), "wafer_slot": ("wafer_slot", None),
-    "t_peak": ("t_peak", u.s), "ra": ("fit_ra", u.rad), "dec": ("fit_dec", u.rad),
-    "ra_err": ("ra_err", u.rad), "dec_err": ("dec_err", u.rad), "flux": ("flux", u.mJy),
-    "flux_err": ("flux_err", u.mJy), "snr_fit": ("snr_fit", None), "n_dets": ("n_dets", None),
-    "snr_max": ("snr_max", None),
-}
+from .. import candidates
+from ..fit import FitConfig
+from ..step_config import from_yaml
+
+SEARCH_STEPS = candidates.STEPS
+#: Columns of a campaign's detection tables (besides ``obs_id``).
+DETECTION_COLUMNS = ("bandpass", "wafer_slot", "t_peak", "ra", "dec", "ra_err", "dec_err",
+                     "flux", "flux_err", "snr_fit", "n_dets", "snr_max")
 
 
 def split_pipe(process_pipe):
-    """(steps up to and including ``transient_filter``, the catalogue steps)."""
+    """(steps up to and including ``transient_filter``, the search steps)."""
     names = [step["name"] for step in process_pipe]
     if "transient_filter" not in names:
         raise ValueError("the preprocess config has no transient_filter step")
     cut = names.index("transient_filter") + 1
-    return process_pipe[:cut], [s for s in process_pipe[cut:] if s["name"] in CATALOG_STEPS]
+    return process_pipe[:cut], [s for s in process_pipe[cut:] if s["name"] in SEARCH_STEPS]
 
 
-class CatalogSearch:
+def fit_config(search_steps) -> FitConfig:
+    """The ``transient_fit`` settings among the search steps' config entries."""
+    entry = next((s for s in search_steps if s["name"] == "transient_fit"), None)
+    if entry is None:
+        raise ValueError("the preprocess config has no transient_fit step")
+    calc = entry.get("calc")
+    return from_yaml(FitConfig, calc if isinstance(calc, dict) else {}, "transient_fit")
+
+
+class SearchSteps:
     """``transient_find`` -> ``transient_cuts`` -> ``transient_fit`` from config entries,
     with saving and plotting off; ``error_scale`` fixes the fit's error scale."""
 
@@ -68,10 +76,11 @@ def detections(aman, obs_id="") -> Table:
     keep = (np.flatnonzero(np.asarray(cands.detected, bool)) if "detected" in cands._fields
             else np.zeros(0, int))
     table = Table()
-    table["obs_id"] = np.full(len(keep), obs_id, dtype="U64")
-    for name, (source, unit) in DETECTION_COLUMNS.items():
-        values = np.asarray(cands[source])[keep] if source in cands._fields else np.zeros(0)
+    table["obs_id"] = np.full(len(keep), obs_id)
+    for name in DETECTION_COLUMNS:
+        col = candidates.BY_NAME[name]
+        values = np.asarray(cands[name])[keep] if name in cands._fields else np.zeros(0)
         table[name] = values.astype(str) if values.dtype.kind in "USO" else values
-        if unit is not None:
-            table[name].unit = unit
+        if col.unit is not None:
+            table[name].unit = col.unit
     return table

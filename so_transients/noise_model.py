@@ -23,7 +23,7 @@ import numpy as np
 import scipy.fft
 
 from .matched_filter import FilterResult, butterworth_highpass
-from .processes import check_timestamps
+from .scan_geometry import sample_rate
 
 
 @dataclass
@@ -55,7 +55,7 @@ class NoiseModel:
         if "psd_bins" not in summary._fields:
             raise ValueError("aman.transient_filter holds no noise model (psd_bins): run "
                              "transient_filter's process() on this aman first")
-        return cls(check_timestamps(aman, "NoiseModel"), int(summary.nfft),
+        return cls(sample_rate(aman.timestamps, "NoiseModel:"), int(summary.nfft),
                    np.asarray(summary.psd_edges), np.asarray(summary.psd_bins, float),
                    np.asarray(summary.fknee, float), np.asarray(summary.sigma_t, float),
                    np.asarray(summary.snr_factor, float), int(summary.order))

@@ -1,7 +1,7 @@
 """One campaign work unit: the flares of one grid cell in one observation, injected and matched.
 
 A unit is a plain dict (it crosses process and MPI boundaries) naming the cell, the observation,
-its prepared groups, the catalogue steps and the options; :func:`run_unit` writes its results
+its prepared groups, the search steps and the options; :func:`run_unit` writes its results
 as two ECSV files under ``<output>/units/`` and returns a short summary. The flares file is
 written last and atomically: its presence marks the unit done, which is what resuming checks.
 """
@@ -15,20 +15,21 @@ from astropy import units as u
 from astropy.table import Table, vstack
 
 from ..lightcurve import flare_flux
-from ..matching import ARCMIN, match
+from ..angles import ARCMIN
+from ..matching import match
 from ..sim.simulate import rng_for
 from .config import Cell, Injection
-from .inject import draw_cell_flares, inject_flare
+from .flare_injection import draw_cell_flares, inject_flare
 from .noise import Group, GroupState
-from .search import CatalogSearch, stack
+from .search_steps import SearchSteps, stack
 
 _STATES: dict = {}     # per process: prepared groups already opened
 
 
-def _state(group, folder, catalog_steps):
+def _state(group, folder, search_steps):
     key = str(folder)
     if key not in _STATES:
-        _STATES[key] = GroupState.load(group, folder, catalog_steps)
+        _STATES[key] = GroupState.load(group, folder, search_steps)
     return _STATES[key]
 
 
@@ -69,7 +70,7 @@ def search_flares(states, flares, options, max_dt, max_offset):
     """Inject each flare alone into the prepared ``states``, search and match it; returns
     ``flares`` with per-flare counts and ``detected``, and the matched detections."""
     flares = flares.copy()
-    searches = [CatalogSearch(s.catalog_steps, error_scale=s.error_scale) for s in states]
+    searches = [SearchSteps(s.search_steps, error_scale=s.error_scale) for s in states]
     columns = {k: np.zeros(len(flares), int) for k in ("n_crossings", "n_searched", "n_skipped",
                                                        "n_detections")}
     found = []
@@ -99,7 +100,7 @@ def search_flares(states, flares, options, max_dt, max_offset):
 def run_unit(spec: dict) -> dict:
     """Inject, search and match the flares of one unit (see the module doc)."""
     cell = Cell(**spec["cell"])
-    states = [_state(Group(*g), folder, spec["catalog_steps"]) for g, folder in spec["groups"]]
+    states = [_state(Group(*g), folder, spec["search_steps"]) for g, folder in spec["groups"]]
     rng = rng_for(spec["seed"], "campaign", cell.label, spec["obs_id"])
     flares = draw_cell_flares(cell, spec["n"], states, rng)
     flares["source_id"] += spec["first_id"]

@@ -1,0 +1,55 @@
+"""The candidate schema is the one declaration the steps, tables and README share."""
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from so_transients import candidates
+from so_transients.step_config import ConfigError, from_yaml
+from so_transients.find import FindConfig
+from so_transients.fit import FitConfig
+
+README = Path(__file__).resolve().parent.parent / "README.md"
+
+
+def test_the_readme_lists_the_schema_as_generated():
+    text = README.read_text()
+    block = re.search(r"<!-- schema: .*?-->\n(.*?)\n<!-- end schema -->", text, re.S)
+    assert block is not None and block.group(1) == candidates.markdown()
+
+
+def test_tables_carry_units_descriptions_and_unclipped_strings():
+    rows = candidates.empty()
+    rows = {k: np.zeros(1, v.dtype) for k, v in rows.items()}
+    rows["cut_reason"] = np.array(["a_cut_reason_much_longer_than_twelve_characters"])
+    table = candidates.table(rows)
+    assert table["cut_reason"][0] == "a_cut_reason_much_longer_than_twelve_characters"
+    assert str(table["flux"].unit) == "mJy" and table["flux"].description
+    assert table.colnames == candidates.names(saved=True)
+
+
+def test_by_band_keeps_long_strings_from_every_band():
+    cands = {"bandpass": np.array(["f090", "f150", "f090"])}
+    hits = {"cand": np.array([0, 1, 2]), "det": np.array([0, 1, 2])}
+    out = candidates.by_band(cands, hits, lambda band, sel, c, h: {
+        "reason": np.array(["x" * (20 if band == "f150" else 3)] * len(sel))}, "transient_cuts")
+    assert list(out["reason"]) == ["xxx", "x" * 20, "xxx"]
+
+
+@pytest.mark.parametrize("cls, cfg, message", [
+    (FindConfig, {"snr_threshold": "abc"}, "transient_find: snr_threshold: expected float"),
+    (FindConfig, {"min_dets": -3}, "transient_find: min_dets must be positive"),
+    (FindConfig, {"min_det": 3}, "transient_find: unknown key(s) min_det"),
+    (FitConfig, {"n_null": 2.5}, "transient_fit: n_null: expected int"),
+])
+def test_bad_config_values_are_refused_with_the_step_and_key(cls, cfg, message):
+    with pytest.raises(ConfigError) as err:
+        from_yaml(cls, cfg, message.split(":")[0])
+    assert message in str(err.value)
+
+
+def test_yaml_units_are_converted_once():
+    cfg = from_yaml(FindConfig, {"eps_arcmin": 1.5}, "transient_find")
+    assert cfg.eps == pytest.approx(np.radians(1.5 / 60))
+    assert from_yaml(FitConfig, {}, "transient_fit").radius == pytest.approx(np.radians(1.0))

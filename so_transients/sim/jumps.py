@@ -41,6 +41,7 @@ def draw_jumps(config, obs_id, readout_ids, timestamps, white_rms, rng) -> Table
 def add_jumps(tod, chunk_ids, jumps):
     """Add the steps of ``jumps`` that belong to detectors ``chunk_ids`` to ``tod`` in place."""
     where = {name: i for i, name in enumerate(chunk_ids)}
-    for row in jumps:
-        if row["readout_id"] in where:
-            tod[where[row["readout_id"]], row["sample"]:] += np.float32(row["height"])
+    mine = np.isin(jumps["readout_id"], list(where))
+    for name, sample, height in zip(jumps["readout_id"][mine], jumps["sample"][mine],
+                                    jumps["height"][mine]):
+        tod[where[name], sample:] += np.float32(height)

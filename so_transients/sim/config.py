@@ -4,6 +4,10 @@ Every section and key is optional; defaults give one MF wafer (w16 in tube i1), 
 15 minutes at elevation 50 deg, white noise + atmosphere + CMB and a handful of flares. Unknown
 keys are errors, so a typo never silently falls back to a default. See ``configs/sim_default.yaml``
 for the documented full set.
+
+The instrument's imperfections (dead and noisy detectors, per-detector noise, calibration errors,
+time constants, focal-plane errors, readout jumps) and moving sources are all off by default, so
+a config that does not name them gives exactly the ideal simulation.
 """
 from __future__ import annotations
 
@@ -55,10 +59,30 @@ class InstrumentConfig:
                 raise ValueError(f"instrument.bands: unknown band {band!r}")
 
 
+def _check_choice(name, value, choices):
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {choices}, got {value!r}")
+
+
+def _check_fraction(name, value):
+    if not 0 <= value <= 1:
+        raise ValueError(f"{name} must be in [0, 1], got {value}")
+
+
 @dataclass
 class NoiseConfig:
     enabled: bool = True
     white_mjy: dict = field(default_factory=lambda: dict(WHITE_NOISE_MJY))
+    white_scatter: float = 0.0      # log-normal sigma of each detector's white-noise level
+    fknee: Any = None               # Hz, each detector's own 1/f knee: a value or a [low, high]
+                                    # log-uniform range; None: no per-detector 1/f
+    alpha: float = 1.0              # slope of the per-detector 1/f
+
+    def __post_init__(self):
+        if self.fknee is not None:
+            self.fknee = _check_range("noise.fknee", self.fknee)
+        if self.white_scatter < 0 or self.alpha <= 0:
+            raise ValueError("noise: white_scatter must be >= 0 and alpha > 0")
 
 
 @dataclass
@@ -121,10 +145,91 @@ class GlitchConfig:
         self.amplitude_mjy = _check_range("glitches.amplitude_mjy", self.amplitude_mjy)
 
 
+@dataclass
+class DetectorYieldConfig:
+    dead_fraction: float = 0.0      # of the detectors of each wafer and band
+    dead_mode: str = "zeros"        # what a dead detector records: zeros, nan or constant
+    dead_value: float = 0.0         # mJy, with dead_mode: constant
+    noisy_fraction: float = 0.0     # of the detectors of each wafer and band (never dead ones)
+    noisy_factor: float = 10.0      # their noise (white and 1/f) over their normal level
+
+    def __post_init__(self):
+        _check_fraction("detector_yield.dead_fraction", self.dead_fraction)
+        _check_fraction("detector_yield.noisy_fraction", self.noisy_fraction)
+        if self.dead_fraction + self.noisy_fraction > 1:
+            raise ValueError("detector_yield: dead_fraction + noisy_fraction must be <= 1")
+        _check_choice("detector_yield.dead_mode", self.dead_mode, ("zeros", "nan", "constant"))
+        if self.noisy_factor <= 0:
+            raise ValueError("detector_yield.noisy_factor must be > 0")
+
+
+@dataclass
+class CalibrationConfig:
+    scatter: float = 0.0            # rms of each detector's true sky response over its metadata
+    distribution: str = "lognormal" # lognormal: exp(N(0, scatter)); gaussian: 1 + N(0, scatter)
+
+    def __post_init__(self):
+        _check_choice("calibration.distribution", self.distribution, ("lognormal", "gaussian"))
+        if self.scatter < 0:
+            raise ValueError("calibration.scatter must be >= 0")
+
+
+@dataclass
+class TimeConstantConfig:
+    tau_ms: Any = None              # None: instantaneous detectors; a value or [low, high]
+                                    # log-uniform range, or {band: value or range}
+
+    def __post_init__(self):
+        if isinstance(self.tau_ms, dict):
+            for band in self.tau_ms:
+                if band not in HARDWARE_BAND_KEY:
+                    raise ValueError(f"time_constants.tau_ms: unknown band {band!r}")
+            self.tau_ms = {b: _check_range(f"time_constants.tau_ms.{b}", v)
+                           for b, v in self.tau_ms.items()}
+        elif self.tau_ms is not None:
+            self.tau_ms = _check_range("time_constants.tau_ms", self.tau_ms)
+
+    def range_for(self, band):
+        """[low, high] in ms for ``band``, or None (no time constant)."""
+        if isinstance(self.tau_ms, dict):
+            return self.tau_ms.get(band)
+        return self.tau_ms
+
+
+@dataclass
+class FocalPlaneErrorConfig:
+    sigma_arcsec: float = 0.0       # Gaussian error of the metadata xi and of eta (each axis)
+
+    def __post_init__(self):
+        if self.sigma_arcsec < 0:
+            raise ValueError("focal_plane_errors.sigma_arcsec must be >= 0")
+
+
+@dataclass
+class JumpConfig:
+    rate_per_hour: float = 0.0      # readout jumps per detector per hour
+    height: Any = (5.0, 50.0)       # size: a value or [low, high] log-uniform; random sign
+    units: str = "white"            # white: the detector's white-noise rms per sample; mjy
+
+    def __post_init__(self):
+        self.height = _check_range("jumps.height", self.height)
+        _check_choice("jumps.units", self.units, ("white", "mjy"))
+        if self.rate_per_hour < 0:
+            raise ValueError("jumps.rate_per_hour must be >= 0")
+
+
+@dataclass
+class MovingSourceConfig:
+    list: list = field(default_factory=list)  # see configs/sim_default.yaml
+
+
 SECTIONS = {
     "observation": ObservationConfig, "instrument": InstrumentConfig, "scan": ScanPattern,
     "noise": NoiseConfig, "atmosphere": AtmosphereConfig, "cmb": CmbConfig,
     "flares": FlareConfig, "point_sources": PointSourceConfig, "glitches": GlitchConfig,
+    "detector_yield": DetectorYieldConfig, "calibration": CalibrationConfig,
+    "time_constants": TimeConstantConfig, "focal_plane_errors": FocalPlaneErrorConfig,
+    "jumps": JumpConfig, "moving_sources": MovingSourceConfig,
 }
 
 
@@ -141,6 +246,12 @@ class SimConfig:
     flares: FlareConfig = field(default_factory=FlareConfig)
     point_sources: PointSourceConfig = field(default_factory=PointSourceConfig)
     glitches: GlitchConfig = field(default_factory=GlitchConfig)
+    detector_yield: DetectorYieldConfig = field(default_factory=DetectorYieldConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    time_constants: TimeConstantConfig = field(default_factory=TimeConstantConfig)
+    focal_plane_errors: FocalPlaneErrorConfig = field(default_factory=FocalPlaneErrorConfig)
+    jumps: JumpConfig = field(default_factory=JumpConfig)
+    moving_sources: MovingSourceConfig = field(default_factory=MovingSourceConfig)
 
     @classmethod
     def from_dict(cls, data: dict | None) -> "SimConfig":

@@ -9,7 +9,11 @@ A dataset folder holds::
     metadata/det_info.{h5,sqlite} det_info fields (wafer_slot, tube_slot, bandpass, det_id, pol,
                                   pixel) through a ManifestDb, merged into det_info
     metadata/focal_plane.{h5,sqlite}  xi, eta, gamma (radians) through a ManifestDb
-    truth/flares.ecsv, truth/point_sources.ecsv, truth/glitches.ecsv
+    metadata/det_cal.{h5,sqlite}  only with detector time constants: tau_eff (s) as SO's det_cal
+                                  (``aman.det_cal.tau_eff``, what sotodlib's timeconst_filter reads)
+    truth/flares.ecsv, truth/point_sources.ecsv, truth/glitches.ecsv, and with the instrument's
+    imperfections or moving sources: truth/detectors.ecsv, truth/jumps.ecsv,
+    truth/moving_sources.ecsv, truth/moving_source_tracks.ecsv
     sim_config.yaml               the configuration (with its seed) that produced it
 
 Paths inside the databases are relative, so the folder can be moved.
@@ -52,6 +56,7 @@ class DatasetWriter:
         self.det_info_db = metadata.ManifestDb(scheme=scheme)
         scheme = metadata.ManifestScheme().add_exact_match("obs:obs_id").add_data_field("dataset")
         self.focal_plane_db = metadata.ManifestDb(scheme=scheme)
+        self.det_cal_db = None     # made by the first observation with time constants
         self._metadata_written = set()
 
     def tod_path(self, obs_id, detset) -> Path:
@@ -69,9 +74,12 @@ class DatasetWriter:
         rel = os.path.relpath(path, self.root)
         self.obsfiledb.add_obsfile(rel, obs_id, detset, 0, int(n_samples))
 
-    def add_detector_metadata(self, obs_id, tube_slot, dets: dict):
-        """det_info and focal_plane entries of ``obs_id`` (the detectors of its tube)."""
+    def add_detector_metadata(self, obs_id, tube_slot, dets: dict, tau=None):
+        """det_info and focal_plane entries of ``obs_id`` (the detectors of its tube), and
+        det_cal's ``tau_eff`` (s, one per detector) when ``tau`` is given."""
         address = f"tube_{tube_slot}"
+        if tau is not None:
+            self._add_det_cal(obs_id, address, dets["readout_id"], tau)
         if address not in self._metadata_written:
             info = metadata.ResultSet(["dets:readout_id"] + [f"dets:{k}" for k in DET_INFO_FIELDS])
             info.rows = [tuple(row) for row in zip(dets["readout_id"],
@@ -87,12 +95,26 @@ class DatasetWriter:
         self.focal_plane_db.add_entry({"obs:obs_id": obs_id, "dataset": address},
                                       filename="focal_plane.h5")
 
+    def _add_det_cal(self, obs_id, address, readout_ids, tau):
+        if self.det_cal_db is None:
+            scheme = (metadata.ManifestScheme().add_exact_match("obs:obs_id")
+                      .add_data_field("dataset"))
+            self.det_cal_db = metadata.ManifestDb(scheme=scheme)
+        if address not in self._metadata_written:
+            cal = metadata.ResultSet(["dets:readout_id", "tau_eff"])
+            cal.rows = [(rid, float(t)) for rid, t in zip(readout_ids, tau)]
+            write_dataset(cal, str(self.root / "metadata/det_cal.h5"), address, overwrite=True)
+        self.det_cal_db.add_entry({"obs:obs_id": obs_id, "dataset": address},
+                                  filename="det_cal.h5")
+
     def finish(self, config_dict: dict) -> Path:
         """Write databases, context.yaml and the config; returns the context.yaml path."""
         self.obsdb.to_file(str(self.root / "obsdb.sqlite"))
         self.obsfiledb.to_file(str(self.root / "obsfiledb.sqlite"))
         self.det_info_db.to_file(str(self.root / "metadata/det_info.sqlite"))
         self.focal_plane_db.to_file(str(self.root / "metadata/focal_plane.sqlite"))
+        if self.det_cal_db is not None:
+            self.det_cal_db.to_file(str(self.root / "metadata/det_cal.sqlite"))
         context = {
             "imports": ["so_transients"],
             "tags": {"dataset": str(self.root.resolve())},
@@ -106,6 +128,10 @@ class DatasetWriter:
                  "unpack": "focal_plane", "loader": "ResultSetHdf"},
             ],
         }
+        if self.det_cal_db is not None:
+            context["metadata"].append({"db": "{dataset}/metadata/det_cal.sqlite",
+                                        "label": "det_cal", "unpack": "det_cal",
+                                        "loader": "ResultSetHdf"})
         path = self.root / "context.yaml"
         with open(path, "w") as f:
             yaml.safe_dump(context, f, sort_keys=False)

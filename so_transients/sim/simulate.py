@@ -2,9 +2,10 @@
 
 For every time block (``observation.n_obs`` of them) and every simulated tube, one observation
 is written. Within it each detset (wafer x band) is generated in chunks of detectors: white
-noise, the shared atmosphere screen, the CMB, flares, steady sources and glitches are added to a
-chunk and written to disk before the next chunk starts, so memory stays far below the size of
-one wafer-band's TOD.
+noise, the shared atmosphere screen, the CMB, flares, steady and moving sources, glitches and the
+instrument's imperfections (:mod:`so_transients.sim.imperfections`, :mod:`so_transients.sim.jumps`)
+are added to a chunk and written to disk before the next chunk starts, so memory stays far below
+the size of one wafer-band's TOD.
 
 Reproducibility: every random draw comes from a generator seeded by ``(seed, component, ...)``
 with stable integer keys (block index, CRC32 of detector or wafer names), so the same seed gives
@@ -30,13 +31,18 @@ from .cmb import CmbSky, footprint_geometry
 from .config import SimConfig
 from .dataset import DatasetWriter, obs_id_for
 from .glitches import add_glitches, draw_glitches
+from .imperfections import (DetectorFlaws, draw_flaws, flaws_table, metadata_positions,
+                            one_over_f, respond_to_sky, silence_dead)
+from .jumps import add_jumps, draw_jumps
+from .moving import MOVING_COLUMNS, draw_moving_sources, moving_crossings, track_table
 from .scan import boresight, constant_velocity_mask
-from .sources import (FLARE_COLUMNS, POINT_SOURCE_COLUMNS, PointingContext, add_sources,
-                      draw_flares, draw_point_sources, empty_table, source_crossings)
+from .sources import (BEAM_REACH_SIGMA, FLARE_COLUMNS, POINT_SOURCE_COLUMNS, PointingContext,
+                      add_sources, draw_flares, draw_point_sources, empty_table,
+                      source_crossings)
 
 DETS_PER_CHUNK = 32
 # component keys of the random streams
-WHITE, ATMOSPHERE, CMB, FLARES, POINT_SOURCES, GLITCHES = range(1, 7)
+WHITE, ATMOSPHERE, CMB, FLARES, POINT_SOURCES, GLITCHES, FLAWS, ONE_OVER_F, JUMPS = range(1, 10)
 
 
 def rng_for(seed: int, *keys) -> np.random.Generator:
@@ -55,6 +61,22 @@ class SimulationResult:
     point_sources: Table
     glitches: Table
     detsets: dict = field(default_factory=dict)   # obs_id -> [detset, ...]
+    moving_sources: Table = field(default_factory=Table)
+    jumps: Table = field(default_factory=Table)
+    detectors: Table = field(default_factory=Table)   # the imperfections of every detector
+
+
+@dataclass
+class _Sources:
+    """Truth tables of everything on the sky: flares, steady and moving sources."""
+
+    flares: Table
+    point_sources: Table
+    moving: Table
+
+    def band(self, name) -> "_Sources":
+        return _Sources(*(t[t["band"] == name] for t in (self.flares, self.point_sources,
+                                                       self.moving)))
 
 
 @dataclass
@@ -136,7 +158,7 @@ class _BlockSky:
 
 
 def _draw_sources(config: SimConfig, blocks, all_dets):
-    """Flares and point sources of the whole dataset, drawn block by block."""
+    """Flares, point sources and moving sources of the whole dataset, drawn block by block."""
     bands = sorted({b for d in all_dets.values() for b in d["bandpass"]})
     det_cat = {k: np.concatenate([d[k] for d in all_dets.values()])
                for k in ("xi", "eta", "det_id")}
@@ -146,7 +168,7 @@ def _draw_sources(config: SimConfig, blocks, all_dets):
     n_per_block = np.bincount(flare_rng.integers(len(blocks), size=config.flares.n),
                               minlength=len(blocks))
     ps_rng = rng_for(config.seed, POINT_SOURCES)
-    flares, sources = [], []
+    flares, sources, moving = [], [], empty_table(MOVING_COLUMNS)
     first_start = blocks[0][1].timestamps[0]
     for b, (_, ref) in enumerate(blocks):
         ctx = PointingContext(ref.timestamps, ref.bore_q, constant_velocity_mask(ref.t_rel,
@@ -161,12 +183,14 @@ def _draw_sources(config: SimConfig, blocks, all_dets):
         flares.append(draw_flares(block_cfg, bands, ctx, flare_rng))
         if b == 0:
             sources.append(draw_point_sources(config.point_sources, bands, ctx, ps_rng))
+            moving = draw_moving_sources(config.moving_sources, bands, ctx)
     flares = vstack(flares) if flares else empty_table(FLARE_COLUMNS)
     if len(flares):   # renumber across blocks: one id per physical flare
         _, flares["source_id"] = np.unique(np.stack([flares["t_peak"], flares["ra"]]), axis=1,
                                            return_inverse=True)
         flares.sort(["source_id", "band"])
-    return flares, (vstack(sources) if sources else empty_table(POINT_SOURCE_COLUMNS))
+    return _Sources(flares, vstack(sources) if sources else empty_table(POINT_SOURCE_COLUMNS),
+                    moving)
 
 
 def planned_detsets(config: SimConfig) -> dict:
@@ -218,11 +242,15 @@ def simulate(config: SimConfig, output=None, overwrite=False, progress=True,
     ref_flavor = flavors[config.instrument.tubes[0]]
     blocks = [(s, _timeline(s, obs_cfg.duration, FLAVOR_SAMPLE_RATE[ref_flavor], config.scan))
               for s in starts]
-    flares, point_sources = _draw_sources(config, blocks, all_dets)
+    sources = _draw_sources(config, blocks, all_dets)
+    flaws = {t: draw_flaws(config, t, all_dets[t],
+                           lambda *keys: rng_for(config.seed, FLAWS, *keys))
+             for t in config.instrument.tubes}
 
     writer = DatasetWriter(root)
-    result = SimulationResult(root / "context.yaml", [], flares, point_sources, Table())
-    glitch_tables = []
+    result = SimulationResult(root / "context.yaml", [], sources.flares, sources.point_sources,
+                              Table(), moving_sources=sources.moving)
+    truth = {"glitches": [], "jumps": []}
     wanted = _wanted_detsets(config, detsets)
     for b, (start, ref) in enumerate(blocks):
         sky = _BlockSky(config, b, ref, all_dets)
@@ -232,28 +260,41 @@ def simulate(config: SimConfig, output=None, overwrite=False, progress=True,
                 continue
             tl = ref if flavors[tube] == ref_flavor else _timeline(
                 start, obs_cfg.duration, FLAVOR_SAMPLE_RATE[flavors[tube]], config.scan)
-            glitch_tables += _simulate_obs(config, writer, sky, tl, tube, obs_id, b,
-                                           all_dets[tube], flares, point_sources, progress,
-                                           workers, wanted[obs_id])
+            _simulate_obs(config, writer, sky, tl, tube, obs_id, b, all_dets[tube], flaws[tube],
+                          sources, progress, workers, wanted[obs_id], truth)
             result.obs_ids.append(obs_id)
-    result.glitches = vstack(glitch_tables) if glitch_tables else Table()
-    _write_truth(root, flares, point_sources, result.glitches)
+    result.glitches = vstack(truth["glitches"]) if truth["glitches"] else Table()
+    if config.jumps.rate_per_hour > 0 and truth["jumps"]:
+        result.jumps = vstack(truth["jumps"])
+    if any(not f.ideal for f in flaws.values()):
+        result.detectors = vstack([flaws_table(all_dets[t], f) for t, f in flaws.items()])
+    _write_truth(root, result, (blocks[0][1].timestamps[0], blocks[-1][1].timestamps[-1]))
     writer.finish(config.to_dict())
     result.detsets = {o: wanted[o] for o in result.obs_ids}
     return result
 
 
-def _write_truth(root, flares, point_sources, glitches):
-    flares.write(root / "truth/flares.ecsv", overwrite=True)
-    point_sources.write(root / "truth/point_sources.ecsv", overwrite=True)
-    if len(glitches.colnames):
-        glitches.write(root / "truth/glitches.ecsv", overwrite=True)
+def _write_truth(root, result: SimulationResult, span):
+    """Truth tables of ``result``; those of options that are off are not written.
+    ``span``: first and last ctime of the dataset (for the moving sources' tracks)."""
+    result.flares.write(root / "truth/flares.ecsv", overwrite=True)
+    result.point_sources.write(root / "truth/point_sources.ecsv", overwrite=True)
+    for name in ("glitches", "jumps", "detectors"):
+        table = getattr(result, name)
+        if len(table.colnames):
+            table.write(root / f"truth/{name}.ecsv", overwrite=True)
+    if len(result.moving_sources):
+        result.moving_sources.write(root / "truth/moving_sources.ecsv", overwrite=True)
+        track_table(result.moving_sources, *span).write(root / "truth/moving_source_tracks.ecsv",
+                                                        overwrite=True)
 
 
-def _simulate_obs(config, writer, sky, tl: Timeline, tube, obs_id, block, dets, flares,
-                  point_sources, progress, workers, detsets):
-    """Write one observation (``detsets`` of one tube); returns its glitch truth tables."""
-    writer.add_detector_metadata(obs_id, tube, dets)
+def _simulate_obs(config, writer, sky, tl: Timeline, tube, obs_id, block, dets,
+                  flaws: DetectorFlaws, sources: _Sources, progress, workers, detsets, truth):
+    """Write one observation (``detsets`` of one tube); appends its glitch and jump truth
+    tables to ``truth``."""
+    tau = flaws.tau if config.time_constants.tau_ms is not None else None
+    writer.add_detector_metadata(obs_id, tube, metadata_positions(dets, flaws), tau=tau)
     pattern = config.scan
     writer.add_observation(obs_id, {
         "timestamp": tl.timestamps[0], "duration": tl.timestamps[-1] - tl.timestamps[0],
@@ -264,7 +305,6 @@ def _simulate_obs(config, writer, sky, tl: Timeline, tube, obs_id, block, dets, 
         "subtype": "cmb", "el_nom": pattern.el, "az_center": pattern.az_center,
         "az_throw": pattern.az_throw, "scan_speed": pattern.sky_speed})
     daz, el_det = horizon_offsets(dets["xi"], dets["eta"], tl.el[0])
-    glitch_tables = []
     for wafer in sorted(set(dets["wafer_slot"])):
         in_wafer = dets["wafer_slot"] == wafer
         bands = [b for b in sorted(set(dets["bandpass"][in_wafer])) if f"{wafer}_{b}" in detsets]
@@ -273,46 +313,70 @@ def _simulate_obs(config, writer, sky, tl: Timeline, tube, obs_id, block, dets, 
         glitches = draw_glitches(config.glitches, obs_id, wafer, tl.timestamps,
                                  dets["readout_id"][in_wafer],
                                  rng_for(config.seed, GLITCHES, block, wafer))
-        glitch_tables.append(glitches)
+        truth["glitches"].append(glitches)
         for band_name in bands:
             sel = np.flatnonzero(in_wafer & (dets["bandpass"] == band_name))
-            _simulate_detset(config, writer, sky, tl, obs_id, f"{wafer}_{band_name}",
-                             {k: v[sel] for k, v in dets.items()}, daz[sel], el_det[sel],
-                             flares[flares["band"] == band_name],
-                             point_sources[point_sources["band"] == band_name],
-                             glitches, progress, workers)
-    return glitch_tables
+            truth["jumps"].append(_simulate_detset(
+                config, writer, sky, tl, obs_id, f"{wafer}_{band_name}",
+                {k: v[sel] for k, v in dets.items()}, daz[sel], el_det[sel],
+                sources.band(band_name), glitches, flaws.subset(sel), progress, workers))
 
 
 def _simulate_detset(config, writer, sky, tl: Timeline, obs_id, detset, dets, daz, el_det,
-                     flares, point_sources, glitches, progress, workers=1):
+                     sources: _Sources, glitches, flaws: DetectorFlaws, progress, workers=1):
+    """Write the TOD of one detset, chunk by chunk of detectors; returns its jumps' truth."""
     band = get_band(dets["bandpass"][0])
-    white = float(config.noise.white_mjy[band.name])
+    white_rms = float(config.noise.white_mjy[band.name]) * flaws.noise_factor
     center = (dets["xi"].mean(), dets["eta"].mean())
     radius = np.hypot(dets["xi"] - center[0], dets["eta"] - center[1]).max()
     bore_q = tl.bore_q
-    crossings = source_crossings(tl.timestamps, bore_q, flares, center, radius, band.sigma)
-    crossings += source_crossings(tl.timestamps, bore_q, point_sources, center, radius,
+    crossings = source_crossings(tl.timestamps, bore_q, sources.flares, center, radius, band.sigma)
+    crossings += source_crossings(tl.timestamps, bore_q, sources.point_sources, center, radius,
                                   band.sigma, steady=True)
-    atm_scale = sky.atmosphere_scale(band, white, tl) if sky.atm is not None else 0.0
+    crossings += moving_crossings(tl.timestamps, bore_q, sources.moving, center,
+                                  radius + BEAM_REACH_SIGMA * band.sigma)
+    atm_scale = (sky.atmosphere_scale(band, float(config.noise.white_mjy[band.name]), tl)
+                 if sky.atm is not None else 0.0)
     ndet, nsamp = len(dets["xi"]), len(tl.timestamps)
+    jumps = draw_jumps(config.jumps, obs_id, dets["readout_id"], tl.timestamps, white_rms,
+                       rng_for(config.seed, JUMPS, obs_id, detset))
     path = writer.tod_path(obs_id, detset)
     slices = [slice(s, min(s + DETS_PER_CHUNK, ndet)) for s in range(0, ndet, DETS_PER_CHUNK)]
 
-    def chunk(sl):
-        tod = np.zeros((sl.stop - sl.start, nsamp), dtype=np.float32)
-        if config.noise.enabled:
-            for i, name in enumerate(dets["readout_id"][sl]):
-                rng = rng_for(config.seed, WHITE, obs_id, name)
-                tod[i] = rng.standard_normal(nsamp, dtype=np.float32) * np.float32(white)
+    def add_noise(tod, sl):
+        if not config.noise.enabled:
+            return
+        for i, name in enumerate(dets["readout_id"][sl]):
+            rms = white_rms[sl][i]
+            rng = rng_for(config.seed, WHITE, obs_id, name)
+            tod[i] += rng.standard_normal(nsamp, dtype=np.float32) * np.float32(rms)
+            fknee = flaws.fknee[sl][i]
+            if fknee > 0:
+                tod[i] += (rms * one_over_f(rng_for(config.seed, ONE_OVER_F, obs_id, name), nsamp,
+                                            1 / tl.sample_rate, fknee, config.noise.alpha)
+                           ).astype(np.float32)
+
+    def add_sky(tod, sl):
         if sky.atm is not None:
             tod += np.float32(atm_scale) * sky.atm.sample(tl.t_rel, tl.az, daz[sl], el_det[sl])
         if sky.cmb is not None:
             tod += sky.cmb.sample(band, tl.sight, dets["xi"][sl], dets["eta"][sl],
                                   dets["gamma"][sl])
         add_sources(tod, dets["xi"][sl], dets["eta"][sl], crossings, band.sigma)
+
+    def chunk(sl):
+        tod = np.zeros((sl.stop - sl.start, nsamp), dtype=np.float32)
+        if flaws.filters_sky:     # calibration and time constants act on the sky alone
+            add_sky(tod, sl)
+            respond_to_sky(tod, flaws.subset(sl), 1 / tl.sample_rate)
+            add_noise(tod, sl)
+        else:                     # the historical order: ideal detectors give identical data
+            add_noise(tod, sl)
+            add_sky(tod, sl)
         add_glitches(tod, dets["readout_id"][sl], tl.timestamps, glitches,
                      config.glitches.time_constant)
+        add_jumps(tod, dets["readout_id"][sl], jumps)
+        silence_dead(tod, flaws.subset(sl), config.detector_yield)
         return tod
 
     bar = tqdm(total=len(slices), desc=f"{obs_id} {detset}", unit="chunk",
@@ -327,3 +391,4 @@ def _simulate_detset(config, writer, sky, tl: Timeline, obs_id, detset, dets, da
                 bar.update()
     bar.close()
     writer.add_detset_file(obs_id, detset, dets["readout_id"], path, nsamp)
+    return jumps

@@ -22,6 +22,10 @@ HARDWARE_BAND_KEY = {"f090": "LAT_f090", "f150": "LAT_f150", "f220": "LAT_f230",
 #: Per-sample white noise in point-source-calibrated mJy (paper, section 5.2).
 WHITE_NOISE_MJY = {"f090": 367.0, "f150": 353.0, "f220": 520.0, "f280": 988.0}
 
+#: The atmospheric knee the paper measured at f090 (Hz): the matched filter's default
+#: high-pass and the simulated atmosphere's knee in every band.
+PAPER_KNEE_HZ = 1.23
+
 #: Wafer flavour -> (bands, sample rate in Hz) (paper, section 2.2).
 FLAVOR_BANDS = {"LAT_MF": ("f090", "f150"), "LAT_UHF": ("f220", "f280")}
 FLAVOR_SAMPLE_RATE = {"LAT_MF": 220.0, "LAT_UHF": 340.0}
@@ -30,11 +34,6 @@ FLAVOR_SAMPLE_RATE = {"LAT_MF": 220.0, "LAT_UHF": 340.0}
 def fwhm_to_sigma(fwhm):
     """Gaussian sigma for a FWHM: FWHM / (2 sqrt(2 ln 2))."""
     return fwhm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
-
-
-def fwhm_to_sigma_fwhm(fwhm):
-    """The paper's clustering scale for a FWHM: sigma_FWHM = FWHM / (2 sqrt(ln 2))."""
-    return fwhm / (2.0 * np.sqrt(np.log(2.0)))
 
 
 @dataclass(frozen=True)

@@ -41,7 +41,7 @@ from tqdm.auto import tqdm
 
 from . import spectral_ops
 from .angles import ARCMIN
-from .bands import nominal_fwhm_arcmin
+from .bands import PAPER_KNEE_HZ, nominal_fwhm_arcmin
 from .robust import mad_std
 
 @dataclass
@@ -49,7 +49,7 @@ class FilterConfig:
     """Parameters of :func:`matched_filter` (times in seconds, frequencies in Hz), and of the
     ``transient_filter`` step around it (band field, beam widths, masked flags)."""
 
-    highpass: float | str | None = 1.23   # knee frequency; None (YAML: "fit"): fit per detector
+    highpass: float | str | None = PAPER_KNEE_HZ   # Hz; None (YAML: "fit"): fit per detector
     order: int = 4                         # Butterworth order
     white_band: tuple = (10.0, 30.0)       # band where the PSD is white, for the noise level
     bins_per_decade: int = 40              # PSD smoothing

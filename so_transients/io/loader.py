@@ -4,7 +4,8 @@ The Context calls :func:`load_sim_obs` with the ObsFileDb; it reads the HDF5 fil
 implicated detset (:mod:`so_transients.io.tod_file`) and returns an AxisManager with the standard
 fields: ``signal`` (mJy), ``timestamps``, ``boresight`` (az, el, roll), plus an empty ``flags``
 and ``iir_params`` so that sotodlib's preprocess ``Pipeline`` accepts it (the data carry no
-readout filter to deconvolve). The Context adds ``det_info``, ``focal_plane`` and ``obs_info``.
+readout filter to deconvolve). The Context adds ``det_info``, ``focal_plane`` and ``obs_info``,
+and ``det_cal`` (``tau_eff``, s) when the simulation gave the detectors time constants.
 """
 from __future__ import annotations
 

@@ -14,9 +14,9 @@ import numpy as np
 from pixell import enmap, utils
 from so3g.proj import Assembly, FocalPlane, Projectionist
 
+from ..angles import ARCMIN
 from ..bands import HARDWARE_BAND_KEY, nominal_hardware
 
-ARCMIN = np.pi / (180 * 60)
 
 
 def fiducial_cl():

@@ -18,10 +18,9 @@ from typing import Any
 
 import yaml
 
-from ..bands import HARDWARE_BAND_KEY, WHITE_NOISE_MJY
+from ..bands import HARDWARE_BAND_KEY, PAPER_KNEE_HZ, WHITE_NOISE_MJY
 from .scan import ScanPattern
 
-DEFAULT_FKNEE_HZ = 1.23
 
 
 def _check_range(name, value, positive=True):
@@ -94,7 +93,7 @@ class AtmosphereConfig:
     wind_direction: float = 30.0    # deg, direction the layer moves to, from +x (east) to +y
     aperture: float = 6.0           # m, diameter of the near-field beam (the LAT primary)
     pixel: float = 2.0              # m, screen resolution
-    fknee: dict = field(default_factory=lambda: {b: DEFAULT_FKNEE_HZ for b in WHITE_NOISE_MJY})
+    fknee: dict = field(default_factory=lambda: {b: PAPER_KNEE_HZ for b in WHITE_NOISE_MJY})
 
 
 @dataclass
@@ -266,11 +265,6 @@ class SimConfig:
             else:
                 kwargs[key] = value
         return cls(**kwargs)
-
-    @classmethod
-    def from_yaml(cls, path) -> "SimConfig":
-        with open(path) as f:
-            return cls.from_dict(yaml.safe_load(f))
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

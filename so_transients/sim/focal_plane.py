@@ -21,9 +21,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..angles import DEG
 from ..bands import FLAVOR_BANDS, nominal_hardware
 
-DEG = np.pi / 180
 RHOMBUS_DIM = 12
 #: Sites left empty in each wafer (rhombus, row, col), as in sotodlib's TOAST focal-plane sim.
 EMPTY_SITES = ((1, 5, 6), (1, 6, 4))

@@ -24,7 +24,8 @@ from astropy import units as u
 from astropy.table import Table
 from scipy import fft
 
-ARCSEC = np.pi / (180 * 3600)
+from ..angles import ARCSEC
+
 OK, DEAD, NOISY = "ok", "dead", "noisy"
 
 

@@ -14,10 +14,10 @@ from astropy import units as u
 from astropy.table import Table, vstack
 from so3g.proj import quat
 
+from ..angles import ARCMIN
 from ..pointing import angular_distance_xieta
 from .sources import SourceCrossing, _explicit_position, empty_table
 
-ARCMIN = np.pi / (180 * 60)
 MOVING_COLUMNS = [("source_id", int, None), ("band", str, None), ("ra", float, u.rad),
                   ("dec", float, u.rad), ("t_ref", float, u.s), ("rate", float, u.arcmin / u.min),
                   ("direction", float, u.deg), ("flux", float, u.mJy)]

@@ -11,7 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-DEG = np.pi / 180
+from ..angles import DEG
+
 
 
 @dataclass(frozen=True)

@@ -19,12 +19,12 @@ import numpy as np
 from astropy import units as u
 from astropy.table import Table
 
+from ..angles import DEG
 from ..lightcurve import active_window, flare_flux
 from ..pointing import angular_distance_xieta, radec_of_samples, source_near
 
 #: Beam is evaluated out to this many sigma.
 BEAM_REACH_SIGMA = 6.0
-DEG = np.pi / 180
 
 FLARE_COLUMNS = [("source_id", int, None), ("band", str, None), ("ra", float, u.rad),
                  ("dec", float, u.rad), ("t_peak", float, u.s), ("s_peak", float, u.mJy),

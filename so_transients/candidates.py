@@ -63,10 +63,13 @@ SCHEMA = (
     Column("pass_n_dets", "bool", None, _C, "enough detectors (min_dets)"),
     Column("pass_aspect_ratio", "bool", None, _C, "detectors form a line along the scan"),
     Column("pass_time_order", "bool", None, _C, "hit times follow a source drifting across"),
+    Column("pass_sidelobe", "bool", None, _C, "no much stronger signal of opposite sign nearby"),
     Column("pass_known_source", "bool", None, _C, "not at a known source's position"),
     Column("aspect_ratio", "float", None, _C, "focal-plane extent along / across the scan"),
     Column("time_rms", "float", "s", _C, "robust rms of peak times about the drift model"),
     Column("instant_rms", "float", "s", _C, "robust rms of peak times about one instant"),
+    Column("opposite_snr", "float", None, _C, "most negative S/N of the candidate's detectors "
+                                              "within sidelobe_window"),
     Column("pol_fraction", "float", None, _C, "largest fraction of detectors sharing one "
                                               "polarization orientation"),
     Column("pol_flag", "bool", None, _C, "mostly one polarization orientation (not a cut)"),
@@ -87,7 +90,11 @@ SCHEMA = (
     Column("n_fit_dets", "int", None, _T, "detectors fitted"),
     Column("fit_ok", "bool", None, _T, "the fit converged with finite errors"),
     Column("error_scale", "float", None, _T, "measured factor applied to the fit's errors"),
-    Column("detected", "bool", None, _T, "fit_ok and snr_fit >= min_snr"),
+    Column("moving", "bool", None, _T, "its group's detections at this source move across "
+                                        "scans (a planet, asteroid or satellite)"),
+    Column("motion_rate", "float", "arcmin / min", _T, "rate of that motion (NaN: the fit "
+                                                       "was not significant or stood alone)"),
+    Column("detected", "bool", None, _T, "fit_ok, snr_fit >= min_snr and not moving"),
 )
 BY_NAME = {c.name: c for c in SCHEMA}
 

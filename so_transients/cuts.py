@@ -13,6 +13,10 @@ saw its highest S/N:
   that a few detectors peaking on noise do not reject a bright source), and better than "all at
   one instant" whenever the detectors span enough of the scan direction to tell. This is what
   rejects readout glitches and cosmic rays that hit many detectors at once;
+* ``sidelobe``: the candidate's detectors see no signal of the opposite sign more than
+  ``max_opposite_ratio`` times stronger within ``sidelobe_window`` seconds: the matched
+  filter's high-pass gives a strong negative signal (a bright source on sign-inverted data, a
+  negative glitch or jump) positive sidelobes that cluster like a source a few arcmin away;
 * ``known_source``: no source of the known-source list within ``mask_radius``
   (default sigma_FWHM).
 
@@ -34,7 +38,7 @@ from .angles import ARCMIN, sky_separation
 from .robust import mad_std
 from .step_config import positive
 
-CUT_ORDER = ("n_dets", "aspect_ratio", "time_order", "known_source")
+CUT_ORDER = ("n_dets", "aspect_ratio", "time_order", "sidelobe", "known_source")
 
 
 @dataclass
@@ -46,11 +50,14 @@ class CutsConfig:
     known_sources_unit: str = "deg"     # unit of ra/dec when the file does not carry one
     mask_radius_arcmin: float | None = None   # None: sigma_FWHM of the band
     pol_fraction: float = 0.8
+    sidelobe_window: float = 1.0        # s around the candidate's peaks searched for ...
+    max_opposite_ratio: float = 2.0     # ... a signal of opposite sign this many times stronger
 
     def __post_init__(self):
         positive("transient_cuts", min_dets=self.min_dets, min_aspect_ratio=self.min_aspect_ratio,
                  time_tolerance=self.time_tolerance, mask_radius_arcmin=self.mask_radius_arcmin,
-                 pol_fraction=self.pol_fraction)
+                 pol_fraction=self.pol_fraction, sidelobe_window=self.sidelobe_window,
+                 max_opposite_ratio=self.max_opposite_ratio)
 
     @property
     def mask_radius(self):
@@ -111,20 +118,34 @@ def per_detector_peaks(hits, cand):
     return dets, hits["samp"][order[first]]
 
 
+def opposite_peak(snr, dets, samps, half_window):
+    """Most negative S/N of detectors ``dets`` within ``half_window`` samples of ``samps``
+    (their peak samples); 0 without data."""
+    if snr is None or not len(dets):
+        return 0.0
+    lo = max(int(samps.min()) - half_window, 0)
+    hi = min(int(samps.max()) + half_window + 1, snr.shape[1])
+    block = np.asarray(snr[np.sort(dets), lo:hi])
+    return float(min(block.min(), 0.0)) if block.size else 0.0
+
+
 def apply_cuts(cands, hits, xi, eta, gamma, timestamps, drift, pitch, cfg: CutsConfig,
-               known=(np.zeros(0), np.zeros(0)), mask_radius=0.0):
+               known=(np.zeros(0), np.zeros(0)), mask_radius=0.0, snr=None):
     """Evaluate every cut for every candidate.
 
     ``xi``, ``eta``, ``gamma``: focal plane of the group's detectors (indexed by ``hits['det']``);
     ``drift``: (ncand, 2) velocity (rad/s) of each candidate's sky position across the focal
     plane; ``pitch``: detector spacing (radians). Returns a dict of per-candidate arrays:
     ``pass_<cut>`` for each cut, ``aspect_ratio``, ``time_rms``, ``instant_rms``,
-    ``pol_fraction``, ``pol_flag``, ``cut_reason`` and ``passed``.
+    ``opposite_snr``, ``pol_fraction``, ``pol_flag``, ``cut_reason`` and ``passed``. ``snr``:
+    the S/N (ndet, nsamps) the hits were found in, for the sidelobe cut (it passes without).
     """
     n = len(cands["scan"])
     out = {f"pass_{c}": np.zeros(n, bool) for c in CUT_ORDER}
     out.update(aspect_ratio=np.zeros(n), time_rms=np.zeros(n), instant_rms=np.zeros(n),
-               pol_fraction=np.zeros(n), pol_flag=np.zeros(n, bool))
+               opposite_snr=np.zeros(n), pol_fraction=np.zeros(n), pol_flag=np.zeros(n, bool))
+    half_window = (int(round(cfg.sidelobe_window / np.median(np.diff(timestamps))))
+                   if len(timestamps) > 1 else 0)
     near = near_known_source(cands["cluster_ra"], cands["cluster_dec"], known[0], known[1],
                              mask_radius)
     for c in range(n):
@@ -138,6 +159,9 @@ def apply_cuts(cands, hits, xi, eta, gamma, timestamps, drift, pitch, cfg: CutsC
         out["pass_n_dets"][c] = len(dets) >= cfg.min_dets
         out["pass_aspect_ratio"][c] = out["aspect_ratio"][c] >= cfg.min_aspect_ratio
         out["pass_time_order"][c] = ok_time
+        out["opposite_snr"][c] = opposite_peak(snr, dets, samps, half_window)
+        out["pass_sidelobe"][c] = snr is None or (
+            -out["opposite_snr"][c] <= cfg.max_opposite_ratio * cands["snr_max"][c])
         out["pass_known_source"][c] = not near[c]
         out["pol_fraction"][c] = dominant_orientation_fraction(gamma[dets])
         out["pol_flag"][c] = len(dets) >= cfg.min_dets and out["pol_fraction"][c] >= cfg.pol_fraction
@@ -150,13 +174,13 @@ def apply_cuts(cands, hits, xi, eta, gamma, timestamps, drift, pitch, cfg: CutsC
 
 
 def cut_group_candidates(cands, hits, xi, eta, gamma, timestamps, drift, pitch, cfg: CutsConfig,
-                         known, radius_by_band):
+                         known, radius_by_band, snr=None):
     """:func:`apply_cuts` on every band of a group's candidates, each band with its own
     known-source mask radius (``radius_by_band``, radians); every ``transient_cuts`` column."""
     drift = np.asarray(drift).reshape(len(cands["bandpass"]), 2)
 
     def evaluate(band, sel, sub, sub_hits):
         return apply_cuts(sub, sub_hits, xi, eta, gamma, timestamps, drift[sel], pitch, cfg,
-                          known, radius_by_band[band])
+                          known, radius_by_band[band], snr)
     return candidates.check(candidates.by_band(cands, hits, evaluate, "transient_cuts"),
                             "transient_cuts")

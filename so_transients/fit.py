@@ -34,7 +34,8 @@ import numpy as np
 from scipy.interpolate import CubicHermiteSpline
 
 from . import candidates, pointing, spectral_ops
-from .angles import DEG
+from .angles import ARCMIN, ARCSEC, DEG
+from .motion import flag_moving
 from .robust import mad_std
 from .scan_geometry import samples_in
 from .step_config import positive
@@ -53,11 +54,17 @@ class FitConfig:
     n_null: int = 200            # random positions used to measure the error scale
     seed: int = 0                # of the random null positions
     error_scale: float | None = None   # fixed error scale (None: measured on the group)
+    max_motion_arcmin_per_min: float = 5.0   # detections this far apart per time are linked
+    min_motion_arcmin_per_min: float = 0.1   # a linked set moving faster is a moving source
+    motion_floor_arcsec: float = 10.0        # position error floor for the motion test
 
     def __post_init__(self):
         positive("transient_fit", window=self.window, radius_deg=self.radius_deg,
                  min_snr=self.min_snr, cross_scan_sigma=self.cross_scan_sigma,
-                 n_null=self.n_null, error_scale=self.error_scale)
+                 n_null=self.n_null, error_scale=self.error_scale,
+                 max_motion_arcmin_per_min=self.max_motion_arcmin_per_min,
+                 min_motion_arcmin_per_min=self.min_motion_arcmin_per_min,
+                 motion_floor_arcsec=self.motion_floor_arcsec)
 
     @property
     def radius(self):
@@ -425,7 +432,8 @@ OUTPUT_FIELDS = ("flux", "flux_err", "ra", "dec", "ra_err", "dec_err", "offset",
 
 def fit_group_candidates(data: FitInputs, cands, det_bands, cfg: FitConfig):
     """Fit every candidate of a group that passed the cuts (all when there is no ``passed``);
-    returns every ``transient_fit`` column. The error scale is ``cfg.error_scale`` or, per
+    returns every ``transient_fit`` column. Significant fits whose positions move from scan
+    to scan are flagged ``moving`` and not ``detected``. The error scale is ``cfg.error_scale`` or, per
     band, measured at null positions that avoid only the candidates that passed the cuts
     (avoiding every candidate would leave only the quietest stretches and bias it low)."""
     n = len(cands["bandpass"])
@@ -443,5 +451,24 @@ def fit_group_candidates(data: FitInputs, cands, det_bands, cfg: FitConfig):
     fitted = out["fit_ok"]
     out["ra"] = np.where(fitted, out["ra"], cands["cluster_ra"])
     out["dec"] = np.where(fitted, out["dec"], cands["cluster_dec"])
-    out["detected"] = fitted & (np.nan_to_num(out["snr_fit"]) >= cfg.min_snr)
+    significant = fitted & (np.nan_to_num(out["snr_fit"]) >= cfg.min_snr)
+    out["moving"], out["motion_rate"] = _motion(cands, out, significant, cfg)
+    out["detected"] = significant & ~out["moving"]
     return candidates.check(out, "transient_fit")
+
+
+def _motion(cands, out, significant, cfg: FitConfig):
+    """``moving`` and ``motion_rate`` (arcmin/min) of the significant fits, band by band
+    (:func:`so_transients.motion.flag_moving`)."""
+    n = len(significant)
+    moving, rate = np.zeros(n, bool), np.full(n, np.nan)
+    per_min = ARCMIN / 60.0
+    for band in np.unique(cands["bandpass"][significant]):
+        sel = np.flatnonzero(significant & (cands["bandpass"] == band))
+        err = np.hypot(np.hypot(out["ra_err"][sel], out["dec_err"][sel]),
+                       cfg.motion_floor_arcsec * ARCSEC)
+        moving[sel], r = flag_moving(cands["t_peak"][sel], out["ra"][sel], out["dec"][sel], err,
+                                     cfg.max_motion_arcmin_per_min * per_min,
+                                     cfg.min_motion_arcmin_per_min * per_min)
+        rate[sel] = r / per_min
+    return moving, rate

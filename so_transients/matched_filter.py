@@ -21,7 +21,12 @@ variance by measurement, not by assumption; the analytic expectation is kept for
 Samples that are not finite or are masked are filled by linear interpolation before the FFT;
 the S/N and amplitude are set to zero there, within ``mask_buffer`` seconds of them, and within
 ``edge_buffer`` seconds of either end, so edges and flagged samples never create detections.
-Dead detectors (no finite, non-constant samples) get zero S/N and ``dead = True``.
+Dead detectors get zero S/N and ``dead = True``: those with no finite, non-constant samples,
+and those whose white-noise level is below ``min_noise_ratio`` or above ``max_noise_ratio``
+times the median of their group's (detectors of one band): a row of zeros that upstream
+filtering turned into ~1e-17 of numerical noise would otherwise weigh 1e30 times more than a
+real detector in every fit, and a detector ten times noisier than the rest adds mostly noise
+to the clustering. They are left out of the median PSD the kernels are computed from.
 
 The PSD is estimated from data that contain any sources. A source therefore weights itself
 down by its share of the power in the frequencies the filter uses: about S/N^2 / n_eff, with
@@ -60,6 +65,8 @@ class FilterConfig:
     source_mask_snr: float = 3.0           # ... masking samples above this S/N
     workers: int = 1                       # threads, each filtering its own chunks
     knee_bounds: tuple = (0.05, 10.0)      # limits of a fitted knee
+    min_noise_ratio: float = 0.01          # detectors quieter than this x the median: dead
+    max_noise_ratio: float = 5.0           # noisier than this x the median: not used
     bandpass_field: str = "bandpass"       # det_info field holding each detector's band
     beam_fwhm_arcmin: dict = field(default_factory=dict)   # per band; nominal ones otherwise
     mask_flags: list = field(default_factory=list)         # aman.flags fields to ignore
@@ -73,7 +80,8 @@ class FilterConfig:
             except ValueError:
                 raise ValueError(f"highpass must be a frequency in Hz or 'fit', got "
                                  f"{self.highpass!r}") from None
-        for key in ("order", "bins_per_decade", "chunk_dets", "workers"):
+        for key in ("order", "bins_per_decade", "chunk_dets", "workers", "min_noise_ratio",
+                    "max_noise_ratio"):
             if not getattr(self, key) > 0:
                 raise ValueError(f"{key} must be positive, got {getattr(self, key)}")
         self.white_band = tuple(self.white_band)
@@ -394,12 +402,35 @@ def _filter_chunk(sp, signal, mask, sigma_t, sl, out_snr):
                   res["psd"][~dead])
 
 
+def noise_outliers(noise_level, dead, groups, cfg: FilterConfig):
+    """Live detectors whose white noise is below ``cfg.min_noise_ratio`` or above
+    ``cfg.max_noise_ratio`` times the median of the live detectors of their group."""
+    out = np.zeros(len(noise_level), bool)
+    for g in np.unique(groups):
+        live = np.flatnonzero((groups == g) & ~dead)
+        if not len(live):
+            continue
+        ratio = noise_level[live] / np.median(noise_level[live])
+        out[live] = (ratio < cfg.min_noise_ratio) | (ratio > cfg.max_noise_ratio)
+    return out
+
+
+def _exclude(result: FilterResult, rows):
+    """Mark ``rows`` dead in ``result``: no S/N, no amplitude noise, no weight."""
+    result.snr[rows] = 0.0
+    result.dead[rows] = True
+    result.sigma_amp[rows] = 0.0
+    result.snr_factor[rows] = 0.0
+    result.snr_scale[rows] = np.nan
+
+
 def matched_filter(signal, sample_rate, sigma_t, cfg: FilterConfig = FilterConfig(),
-                   mask=None, progress=False) -> FilterResult:
+                   mask=None, progress=False, groups=None) -> FilterResult:
     """Matched-filter every detector of ``signal`` (ndet, nsamps); see the module docstring.
 
     ``sigma_t``: template width in seconds, scalar or per detector. ``mask``: optional bool
-    array (ndet, nsamps) of samples to ignore. The input array is not modified. Chunks of
+    array (ndet, nsamps) of samples to ignore. ``groups``: optional label per detector (its
+    band) within which noise levels are compared. The input array is not modified. Chunks of
     ``cfg.chunk_dets`` detectors are filtered in ``cfg.workers`` threads.
     """
     signal = np.asarray(signal)
@@ -421,13 +452,21 @@ def matched_filter(signal, sample_rate, sigma_t, cfg: FilterConfig = FilterConfi
         chunks = [work(sl) for sl in tqdm(slices, disable=not progress, desc="matched filter",
                                           unit="chunk")]
     gather = lambda key: np.concatenate([getattr(c, key) for c in chunks]) if chunks else np.zeros(0)
+    result = FilterResult(snr=snr, noise_level=gather("noise_level"), fknee=gather("fknee"),
+                          sigma_amp=gather("sigma_amp"), snr_scale=gather("snr_scale"),
+                          dead=gather("dead").astype(bool), nfft=sp.nfft,
+                          psd_bins=gather("psd_all"), psd_edges=sp.edges,
+                          snr_factor=gather("snr_factor"))
+    first_dead = result.dead.copy()
+    outliers = noise_outliers(result.noise_level, first_dead,
+                              np.zeros(ndet, int) if groups is None else np.asarray(groups), cfg)
+    _exclude(result, np.flatnonzero(outliers))
     psds = [c.psd for c in chunks if len(c.psd)]
-    median = expand_bins(np.median(np.concatenate(psds), axis=0), sp.edges)[0] if psds else None
-    return FilterResult(snr=snr, noise_level=gather("noise_level"), fknee=gather("fknee"),
-                        sigma_amp=gather("sigma_amp"), snr_scale=gather("snr_scale"),
-                        dead=gather("dead").astype(bool), median_psd=median,
-                        nfft=sp.nfft, psd_bins=gather("psd_all"), psd_edges=sp.edges,
-                        snr_factor=gather("snr_factor"))
+    if psds:      # the live rows' PSDs, in detector order; outliers left out
+        live_psd = np.concatenate(psds)[~outliers[~first_dead]]
+        if len(live_psd):
+            result.median_psd = expand_bins(np.median(live_psd, axis=0), sp.edges)[0]
+    return result
 
 
 def filter_kernels(nfft, sample_rate, sigma_t, fknee, psd, order=4, max_lag=1.0):

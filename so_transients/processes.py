@@ -82,6 +82,20 @@ def _save_candidates(step, proc_aman, aman, columns):
                                                 int(cands[SLOTS])))
 
 
+def _check_live(dead, where, cfg):
+    """Log how many detectors the filter cannot use; raise (the group is then recorded as
+    failed) when it can use none."""
+    n, n_dead = len(dead), int(np.sum(dead))
+    if n and n_dead == n:
+        raise ValueError(f"{where}: no usable detector: all {n} have no finite, non-constant "
+                         f"data or a white noise outside {cfg.min_noise_ratio:g}-"
+                         f"{cfg.max_noise_ratio:g} x their band's median (NaN samples before "
+                         f"a PCA step spread to every detector: cut them first)")
+    level = logging.WARNING if n_dead > 0.3 * n else logging.INFO
+    log.log(level, "%s: %d of %d detectors not used (dead, NaN, constant or noise far from "
+            "the median)", where, n_dead, n)
+
+
 def _step_config(step, cls, section):
     """The step's YAML section (``process`` or ``calc``: a mapping, or true) as ``cls``."""
     return from_yaml(cls, section if isinstance(section, dict) else {}, step.name)
@@ -169,7 +183,9 @@ class TransientFilter(_Preprocess):
         speed = (scan_geometry.scan_speed(aman.timestamps, aman.boresight.az, aman.boresight.el,
                                           str(GroupName(aman))) if aman.dets.count else 1.0)
         sigma_t = beam_sigma / speed
-        res = matched_filter(aman.signal, fs, sigma_t, self.cfg, mask=self._mask(aman))
+        res = matched_filter(aman.signal, fs, sigma_t, self.cfg, mask=self._mask(aman),
+                             groups=bands)
+        _check_live(res.dead, where, self.cfg)
         _replace(aman, "transient_snr", res.snr, [(0, "dets"), (1, "samps")])
         _replace(aman, "transient_filter", self._summary(aman, res, fs, sigma_t, beam_sigma, bands))
         return aman, proc_aman
@@ -314,7 +330,9 @@ class TransientCuts(_Preprocess):
     Cuts, in order: at least ``min_dets`` detectors; detectors along the scan direction
     (focal-plane aspect ratio >= ``min_aspect_ratio``); hit times consistent with a source
     drifting across the array at the scan speed (rejects readout glitches and cosmic rays that
-    hit many detectors at one instant); not within ``mask_radius_arcmin`` (default
+    hit many detectors at one instant); no signal of opposite sign more than
+    ``max_opposite_ratio`` times stronger on the same detectors within ``sidelobe_window`` s
+    (the filter's sidelobes of a strong negative signal); not within ``mask_radius_arcmin`` (default
     sigma_FWHM, from the beam ``transient_filter`` stored) of a source in the
     ``known_sources`` file (ECSV/CSV with ``ra``, ``dec``). Also sets a polarization flag when
     the detectors mostly share one polarization orientation.
@@ -336,6 +354,8 @@ class TransientCuts(_Preprocess):
           known_sources_unit: deg         # when the file's columns carry no unit
           mask_radius_arcmin: null        # null: sigma_FWHM of the band
           pol_fraction: 0.8
+          sidelobe_window: 1.0            # s searched for a signal of opposite sign ...
+          max_opposite_ratio: 2.0         # ... this many times stronger: a filter sidelobe
         save: true
     """
 
@@ -360,7 +380,7 @@ class TransientCuts(_Preprocess):
         xi, eta, gamma = (np.asarray(fp[k]) for k in ("xi", "eta", "gamma"))
         result = cut_group_candidates(cands, hits, xi, eta, gamma, np.asarray(aman.timestamps),
                                       drift, scan_geometry.detector_pitch(xi, eta), self.cfg,
-                                      self.known, radius)
+                                      self.known, radius, aman.transient_snr)
         candidates.add_to_aman(aman.transient_candidates, result, CAND_AXIS)
         _save_candidates(self, proc_aman, aman, result)
         return aman, proc_aman
@@ -374,7 +394,9 @@ class TransientFit(_Preprocess):
     ``radius_deg`` of its position, from detectors whose path passes within
     ``cross_scan_sigma`` beam sigmas of it (the others carry no beam signal), are fitted on the
     amplitude timestream with a bounded Levenberg-Marquardt fit (see :mod:`so_transients.fit`);
-    a candidate is a detection when ``A0 / sigma_A >= min_snr``. Errors are scaled by
+    a candidate is a detection when ``A0 / sigma_A >= min_snr`` and it is not a moving source
+    (its group's significant fits at that place drift from scan to scan faster than
+    ``min_motion_arcmin_per_min``: flagged ``moving``, see :mod:`so_transients.motion`). Errors are scaled by
     ``error_scale``, the measured spread of the same fit at ``n_null`` random positions away
     from candidates (residual atmosphere is correlated between neighbouring detectors, so the
     naive covariance is too small), unless a fixed ``error_scale`` is configured (injection
@@ -401,6 +423,9 @@ class TransientFit(_Preprocess):
           n_null: 200                     # random positions measuring the error scale
           seed: 0                         # for the random null positions
           error_scale: null               # fixed scale (null: measured on this group)
+          max_motion_arcmin_per_min: 5.0  # detections linked across scans up to this rate
+          min_motion_arcmin_per_min: 0.1  # linked ones moving faster: a moving source
+          motion_floor_arcsec: 10.0       # position error floor of the motion test
         save: true
         plot: true
     """

@@ -5,7 +5,8 @@ Subcommands:
 * ``simulate CONFIG``: simulate SO LAT observations into a sotodlib dataset;
 * ``summary CONTEXT``: describe a dataset as loaded through its context.yaml;
 * ``site-config DATASET``: the transient site preprocess config pointed at a dataset;
-* ``catalog ARCHIVE_OR_CONFIG -o FILE``: every group's detections in one table (ECSV/FITS);
+* ``catalog ARCHIVE_OR_CONFIG -o FILE``: every group's detections in one table (ECSV, FITS or
+  CSV by suffix), with which groups are missing from the archive and why;
 * ``schema``: the candidate table's columns (name, step, unit, meaning) as Markdown;
 * ``campaign CONFIG``: an injection-recovery campaign (efficiency, thresholds, false positives);
 * ``demo``: the main job on built-in default data (``make demo``).
@@ -22,6 +23,11 @@ DEMO_CONFIG = Path(__file__).resolve().parent.parent / "configs" / "sim_demo.yam
 
 
 def _simulate(args):
+    _run_simulation(args)
+
+
+def _run_simulation(args):
+    """Simulate the dataset of ``args`` and return the simulation result."""
     from .sim.config import load_config
     from .sim.simulate import simulate
 
@@ -47,11 +53,21 @@ def _site_config(args):
 
 
 def _catalog(args):
-    from .results import archive_table, write_table
+    """Exit status 1 with ``--strict`` when a group expected is not in the archive."""
+    from .results import archive_status, archive_table, output_format, write_table
 
+    output_format(args.out, args.overwrite)          # refuse before the slow part
+    status = archive_status(args.archive)
     table = archive_table(args.archive, detected_only=not args.all)
-    path = write_table(table, args.out)
+    path = write_table(table, args.out, config=status.config, obs_ids=status.obs_ids,
+                       overwrite=args.overwrite)
     print(f"{len(table)} {'candidates' if args.all else 'detections'} written to {path}")
+    print(status.report())
+    if not status.complete:
+        print(f"so-transients catalog: warning: {len(status.failed)} group(s) failed or missing; "
+              "the table holds only the others", file=sys.stderr)
+        return 1 if args.strict else 0
+    return 0
 
 
 def _schema(args):
@@ -67,7 +83,7 @@ def _demo(args):
     args.config = args.config or DEMO_CONFIG
     args.seed = None
     args.overwrite = True
-    result = _simulate(args)
+    result = _run_simulation(args)
     print(dataset_summary(result.context))
     print(run_demo(result.context.parent, nproc=args.nproc))
 
@@ -91,12 +107,28 @@ def _campaign(args):
     print(f"Campaign done in {time.time() - t0:.0f} s; results in {folder}")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="so-transients", description=__doc__.splitlines()[0])
-    parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
-    sub = parser.add_subparsers(dest="command", required=True)
+def _common_options(default):
+    """Options accepted before and after the subcommand (``default``: argparse.SUPPRESS in the
+    subcommands, so that they do not reset a value given before the subcommand)."""
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("-v", "--verbose", action="store_true", default=default,
+                        help="log at INFO level")
+    return common
 
-    p = sub.add_parser("simulate", help="simulate SO LAT observations into a sotodlib dataset")
+
+def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+
+    parser = argparse.ArgumentParser(prog="so-transients", description=__doc__.splitlines()[0],
+                                     parents=[_common_options(False)])
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+    common = [_common_options(argparse.SUPPRESS)]
+
+    def add(name, help_text):
+        return sub.add_parser(name, parents=common, help=help_text)
+
+    p = add("simulate", "simulate SO LAT observations into a sotodlib dataset")
     p.add_argument("config", nargs="?", help="simulation YAML (default: built-in defaults)")
     p.add_argument("-o", "--out", help="output folder (default: the config's `output`)")
     p.add_argument("--seed", type=int, help="override the config's seed")
@@ -106,27 +138,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_simulate)
 
-    p = sub.add_parser("summary", help="describe a dataset loaded through its context.yaml")
+    p = add("summary", "describe a dataset loaded through its context.yaml")
     p.add_argument("context", help="path to context.yaml")
     p.set_defaults(func=_summary)
 
-    p = sub.add_parser("site-config", help="write the site preprocess config for a dataset")
+    p = add("site-config", "write the site preprocess config for a dataset")
     p.add_argument("dataset", help="dataset folder (holds context.yaml)")
     p.add_argument("-o", "--out", help="output YAML (default: DATASET/preprocess.yaml)")
     p.set_defaults(func=_site_config)
 
-    p = sub.add_parser("catalog", help="collect detections from a preprocess archive")
+    p = add("catalog", "collect detections from a preprocess archive")
     p.add_argument("archive", help="archive index (.sqlite) or preprocess config (.yaml)")
-    p.add_argument("-o", "--out", default="detections.ecsv", help="ECSV or FITS output")
+    p.add_argument("-o", "--out", default="detections.ecsv",
+                   help="output table: .ecsv, .fits or .csv (default: detections.ecsv)")
     p.add_argument("--all", action="store_true",
                    help="every candidate with its cut reason, not only detections")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    p.add_argument("--strict", action="store_true",
+                   help="exit with status 1 when a group is missing from the archive")
     p.set_defaults(func=_catalog)
 
-    p = sub.add_parser("schema", help="the candidate columns (name, step, unit, meaning)")
+    p = add("schema", "the candidate columns (name, step, unit, meaning)")
     p.set_defaults(func=_schema)
 
-    p = sub.add_parser("campaign", help="injection-recovery campaign: efficiencies, detection "
-                                        "thresholds, flux/pointing recovery, false positives")
+    p = add("campaign", "injection-recovery campaign: efficiencies, detection "
+                        "thresholds, flux/pointing recovery, false positives")
     p.add_argument("config", help="campaign YAML (e.g. configs/campaign_quick.yaml)")
     p.add_argument("-o", "--out", help="output folder (default: the config's `output`)")
     p.add_argument("--nproc", type=int, help="worker processes (default: the config's)")
@@ -135,8 +171,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_campaign)
 
-    p = sub.add_parser("demo", help="simulate the default observation, run the site pipeline "
-                                    "and compare detections with the injected flares")
+    p = add("demo", "simulate the default observation, run the site pipeline "
+                    "and compare detections with the injected flares")
     p.add_argument("--config", help=f"simulation YAML (default: {DEMO_CONFIG.name})")
     p.add_argument("-o", "--out", default="data/demo", help="output folder")
     p.add_argument("--nproc", type=int, default=2, help="site pipeline processes")
@@ -145,16 +181,24 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+def configure_logging(verbose):
+    """One handler on the root logger. sotodlib's logger has its own handler too: it stops
+    propagating, else each of its lines would be printed twice."""
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
+    logging.getLogger("sotodlib").propagate = False
+
+
+def main(argv=None) -> int:
+    """Exit status: 0 done, 1 done with failures (``catalog --strict``), 2 refused (one line
+    on stderr naming the file and what is wrong)."""
+    args = build_parser().parse_args(argv)
+    configure_logging(args.verbose)
     try:
-        args.func(args)
-    except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as exc:
+        return args.func(args) or 0
+    except (ValueError, OSError, RuntimeError) as exc:
         print(f"so-transients {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    return 0
 
 
 if __name__ == "__main__":

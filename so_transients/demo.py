@@ -22,13 +22,15 @@ from .site import failed_groups, run_site_pipeline, write_site_config
 
 
 def report(matched: Table, flares: Table, crossings: dict, t0: float) -> str:
-    """Detections next to the injected flares; times relative to ``t0`` (ctime)."""
+    """Detections in time order, with their candidate ids, next to the injected flares; times
+    relative to ``t0`` (ctime)."""
     lines = ["", "Detections (t relative to the observation start):",
-             f"  {'band':5} {'t (s)':>8} {'flux (mJy)':>16} {'S/N':>6} {'dets':>5}  "
-             f"{'matched flare':>14} {'dt (s)':>7} {'offset (arcsec)':>16}"]
-    for d in matched:
+             f"  {'cand_id':>7} {'band':5} {'t (s)':>8} {'flux (mJy)':>16} {'S/N':>6} "
+             f"{'dets':>5}  {'matched flare':>14} {'dt (s)':>7} {'offset (arcsec)':>16}"]
+    for d in matched[np.argsort(matched["t_peak"], kind="stable")] if len(matched) else []:
         src = f"#{d['source_id']}" if d["source_id"] >= 0 else "none (false)"
-        lines.append(f"  {d['bandpass']:5} {d['t_peak'] - t0:8.2f} {d['flux']:8.0f} ± "
+        lines.append(f"  {d['cand_id']:>7} {d['bandpass']:5} {d['t_peak'] - t0:8.2f} "
+                     f"{d['flux']:8.0f} ± "
                      f"{d['flux_err']:<5.0f} {d['snr_fit']:6.1f} {d['n_dets']:5d}  {src:>14} "
                      f"{d['dt']:7.2f} {np.degrees(d['offset']) * 3600:16.1f}")
     lines += ["", "Injected flares:",
@@ -58,7 +60,7 @@ def run_demo(dataset: Path, nproc=2) -> str:
     if errors:
         raise RuntimeError(f"the site pipeline failed on some groups:\n{errors}")
     detections = archive_table(config)
-    write_table(detections, dataset / "detections.ecsv")
+    write_table(detections, dataset / "detections.ecsv", config=config, overwrite=True)
     matched, flares, crossings = compare_with_truth(dataset, detections)
     start = min(o["start_time"] for o in core.Context(str(dataset / "context.yaml")).obsdb.query())
     text = (f"Site pipeline: {elapsed:.0f} s (config {config}); archive "

@@ -10,19 +10,29 @@ Two ways in, both giving the same table:
 
 The columns are those of :mod:`so_transients.candidates`, with their units (mJy for fluxes,
 rad for positions, s of ctime for times) and descriptions, after ``obs_id``.
+:func:`write_table` adds degrees, arcseconds and UTC beside them (:func:`with_readable_columns`)
+and the provenance block (:mod:`so_transients.provenance`).
+
+:func:`archive_status` says which groups are missing from an archive and why. sotodlib appends
+to ``errlog.txt`` across runs; :func:`so_transients.site.run_site_pipeline` moves an earlier
+errlog aside, and :func:`archive_status` only reports errlog entries of groups that are not in
+the archive, so a group that failed once and then succeeded is never reported as failed.
 """
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from astropy.table import Table, vstack
+from astropy.table import Column, Table, vstack
+from astropy.time import Time
 from sotodlib import core
 from sotodlib.core.metadata import ManifestDb
 
 from . import candidates
-from .site import archive_index
+from .provenance import comment_lines, fits_header, provenance
+from .site import archive_index, check_config, errlog_entries, read_config
 from .slot_storage import unpack
 
 #: Columns of every table read back, in order.
@@ -63,6 +73,9 @@ def proc_table(proc_aman, obs_id="", wafer_slot=None) -> Table:
 def archive_entries(index_path):
     """(obs_id, group tags, absolute h5 filename, dataset) for every group in an archive."""
     index_path = Path(index_path)
+    if not index_path.is_file():     # ManifestDb would create an empty one
+        raise FileNotFoundError(f"{index_path}: no preprocess archive index (has the site "
+                                "pipeline run with this config?)")
     db = ManifestDb(str(index_path))
     out = []
     for entry in db.inspect():
@@ -97,16 +110,149 @@ def observation_table(context, obs_id, detected_only=True) -> Table:
     return table[np.asarray(table["detected"], bool)] if detected_only else table
 
 
-def write_table(table: Table, path) -> Path:
-    """Write ECSV or FITS, chosen by the file's suffix."""
+def config_of(archive_or_config):
+    """The preprocess config of an archive: the .yaml given, or for an index the dataset's
+    ``preprocess.yaml`` (two folders up) when it names that index; None when unknown."""
+    path = Path(archive_or_config)
+    if path.suffix in (".yaml", ".yml"):
+        return path
+    guess = path.resolve().parent.parent / "preprocess.yaml"
+    if guess.is_file() and archive_index(guess).resolve() == path.resolve():
+        return guess
+    return None
+
+
+def expected_groups(config) -> set:
+    """{(obs_id, group)} the site pipeline runs for ``config``: every observation of the
+    ObsDb times the groups of its ``subobs.use`` fields (here one per wafer and band), as
+    sotodlib's ``get_groups`` makes them (groups with a field ``NC`` are never run)."""
+    from sotodlib.preprocess import preprocess_util as pp_util
+
+    cfg = read_config(config)
+    context = core.Context(cfg["context_file"])
+    out = set()
+    for obs in context.obsdb.query():
+        _, groups, error = pp_util.get_groups(obs["obs_id"], cfg, context)
+        if error[0] is not None:
+            raise ValueError(f"{config}: {obs['obs_id']}: cannot list its groups: {error[1]}")
+        out |= {(obs["obs_id"], tuple(str(g) for g in group)) for group in groups
+                if "NC" not in group}
+    return out
+
+
+def group_fields(config, entries) -> list:
+    """The ``subobs.use`` fields of ``config``, else the archive entries' tag names."""
+    if config is not None:
+        use = read_config(config).get("subobs", {}).get("use", "detset")
+        return [u.split(":", 1)[-1] for u in np.atleast_1d(use)]
+    return sorted(entries[0][1]) if entries else []
+
+
+@dataclass
+class ArchiveStatus:
+    """What an archive holds against what the site pipeline should have made."""
+
+    index: Path
+    config: Path | None
+    archived: set
+    expected: set | None                    # None: no config to list them from
+    failed: dict = field(default_factory=dict)   # {(obs_id, group): (error type, message)}
+
+    @property
+    def complete(self) -> bool:
+        return not self.failed and (self.expected is None or self.expected <= self.archived)
+
+    @property
+    def obs_ids(self) -> list:
+        return sorted({obs for obs, _ in (self.expected or set()) | self.archived})
+
+    def report(self) -> str:
+        """A few lines: groups expected, archived, and each failed one with its reason."""
+        expected = "unknown (give the preprocess config)" if self.expected is None \
+            else len(self.expected)
+        lines = [f"Archive {self.index}: groups expected {expected}, in the archive "
+                 f"{len(self.archived)}, failed {len(self.failed)}"]
+        for (obs_id, group), (kind, message) in sorted(self.failed.items()):
+            lines.append(f"  FAILED {obs_id} {'/'.join(group)}: {kind}: {message}")
+        return "\n".join(lines)
+
+
+def archive_status(archive_or_config) -> ArchiveStatus:
+    """Groups expected (:func:`expected_groups`), archived, and failed with the reason from
+    the errlog (groups in the errlog and not in the archive; with a config, also groups
+    expected and in neither)."""
+    config = config_of(archive_or_config)
+    if config is not None:
+        check_config(config)
+    index = archive_index(archive_or_config)
+    entries = archive_entries(index)
+    fields = group_fields(config, entries)
+    archived = {(obs, tuple(str(tags[f]) for f in fields)) for obs, tags, _, _ in entries}
+    expected = expected_groups(config) if config is not None else None
+    errors = errlog_entries(index.parent)
+    missing = (expected or set()) - archived
+    failed = {k: errors.get(k, ("missing", "not in the archive and not in errlog.txt"))
+              for k in missing}
+    failed.update({k: v for k, v in errors.items() if k not in archived})
+    return ArchiveStatus(index, config, archived, expected, failed)
+
+
+def with_readable_columns(table: Table) -> Table:
+    """A copy with ``ra_deg``, ``dec_deg`` (deg), ``ra_err_arcsec``, ``dec_err_arcsec``
+    (arcsec) after ``dec_err`` and ``t_peak_utc`` (ISO UTC) after ``t_peak``; the radian and
+    ctime columns are kept as the archive has them."""
+    out = table.copy()
+    derived = [("ra_deg", "ra", "deg", 1.0, "RA in degrees (ra)"),
+               ("dec_deg", "dec", "deg", 1.0, "Dec in degrees (dec)"),
+               ("ra_err_arcsec", "ra_err", "arcsec", 3600.0, "ra_err in arcseconds"),
+               ("dec_err_arcsec", "dec_err", "arcsec", 3600.0, "dec_err in arcseconds")]
+    at = out.colnames.index("dec_err") + 1
+    for i, (name, src, unit, scale, text) in enumerate(derived):
+        values = np.degrees(np.asarray(out[src], np.float64)) * scale
+        out.add_column(Column(values, name=name, unit=unit, description=text), index=at + i)
+    utc = Time(np.asarray(out["t_peak"], np.float64), format="unix").isot if len(out) \
+        else np.zeros(0, "U23")
+    out.add_column(Column(utc, name="t_peak_utc", description="t_peak as ISO UTC"),
+                   index=out.colnames.index("t_peak") + 1)
+    return out
+
+
+#: Output formats by file suffix.
+FORMATS = {".ecsv": "ascii.ecsv", ".fits": "fits", ".fit": "fits", ".csv": "ascii.csv"}
+
+
+def output_format(path, overwrite=False) -> str:
+    """The astropy format of ``path`` (by suffix); refuses an existing file unless
+    ``overwrite``."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if path.suffix.lower() in (".fits", ".fit"):
-        out = table.copy()
-        for name in out.colnames:
-            if out[name].dtype.kind == "b":
-                out[name] = out[name].astype(np.uint8)
-        out.write(path, overwrite=True)
+    fmt = FORMATS.get(path.suffix.lower())
+    if fmt is None:
+        raise ValueError(f"{path}: unknown table suffix {path.suffix!r}; use one of "
+                         f"{sorted(FORMATS)}")
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} exists: not overwritten (use --overwrite or another "
+                              "file name)")
+    return fmt
+
+
+def write_table(table: Table, path, config=None, obs_ids=None, overwrite=False) -> Path:
+    """Write ECSV, FITS or CSV (chosen by the suffix) with :func:`with_readable_columns` and
+    the provenance of ``config`` and ``obs_ids`` (default: the table's) in the metadata.
+    Booleans stay booleans in every format (FITS logical columns). CSV carries the provenance
+    as ``# key: value`` lines: read it with ``Table.read(path, format="ascii.csv",
+    comment="#")`` (pandas: ``comment="#"``)."""
+    path = Path(path)
+    fmt = output_format(path, overwrite)
+    obs_ids = table["obs_id"] if obs_ids is None else obs_ids
+    prov = provenance(config, obs_ids)
+    out = with_readable_columns(table)
+    if fmt == "fits":
+        out.meta.update(fits_header(prov))
+    elif fmt == "ascii.csv":
+        out.meta["comments"] = comment_lines(prov)
     else:
-        table.write(path, format="ascii.ecsv", overwrite=True)
+        out.meta["provenance"] = prov
+    path.parent.mkdir(parents=True, exist_ok=True)
+    extra = {"comment": "# "} if fmt == "ascii.csv" else {}
+    out.write(path, format=fmt, overwrite=overwrite, **extra)
     return path

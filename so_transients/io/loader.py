@@ -38,14 +38,24 @@ def _files_for(db, obs_id, dets):
     return {ds: os.path.join(prefix, entries[0][0]) for ds, entries in files.items()}
 
 
+def _read(obs_id, detset, path, dets, samples, no_signal):
+    """:func:`read_tod`, with a file that cannot be read (missing, truncated, not HDF5, missing
+    a dataset) reported as an OSError naming the observation, detset and file."""
+    try:
+        return read_tod(path, dets=dets, samples=samples, no_signal=bool(no_signal))
+    except (OSError, KeyError, ValueError) as exc:
+        raise OSError(f"{obs_id}: detset {detset}: cannot read TOD file {path}: "
+                      f"{type(exc).__name__}: {exc}") from exc
+
+
 def load_sim_obs(db, obs_id, dets=None, samples=None, prefix=None, no_signal=None, **kwargs):
     """Obsloader for so_transients simulations (see ``sotodlib.core.context.obsloader_template``)."""
     samples = (None, None) if samples is None else tuple(samples)
     files = _files_for(db, obs_id, dets)
     if not files:
         raise ValueError(f"{obs_id}: no TOD files found for the requested detectors")
-    parts = [read_tod(path, dets=dets, samples=samples, no_signal=bool(no_signal))
-             for _, path in sorted(files.items())]
+    parts = [_read(obs_id, detset, path, dets, samples, no_signal)
+             for detset, path in sorted(files.items())]
     names = np.concatenate([p["readout_id"] for p in parts])
     if dets is not None:
         order = {name: i for i, name in enumerate(names)}

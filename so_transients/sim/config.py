@@ -12,6 +12,7 @@ a config that does not name them gives exactly the ideal simulation.
 from __future__ import annotations
 
 import dataclasses
+import numbers
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,14 +23,54 @@ from ..bands import HARDWARE_BAND_KEY, PAPER_KNEE_HZ, WHITE_NOISE_MJY
 from .scan import ScanPattern
 
 
+def _is_number(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _is_integer(value) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
 
 def _check_range(name, value, positive=True):
-    if isinstance(value, (int, float)):
+    """A number or a [low, high] range as [low, high] floats; errors say which rule failed."""
+    if _is_number(value):
         value = [value, value]
-    if len(value) != 2 or value[0] > value[1] or (positive and value[0] <= 0):
-        raise ValueError(f"{name} must be a number or a [low, high] range of positive numbers, "
-                         f"got {value}")
+    if not isinstance(value, (list, tuple)) or len(value) != 2 \
+            or not all(_is_number(v) for v in value):
+        raise ValueError(f"{name} must be a number or a [low, high] range of numbers, "
+                         f"got {value!r}")
+    if value[0] > value[1]:
+        raise ValueError(f"{name}: a range is [low, high] with low <= high, got {list(value)}")
+    if positive and value[0] <= 0:
+        raise ValueError(f"{name} must be positive, got {list(value)}")
     return [float(v) for v in value]
+
+
+#: What a field of each annotated type accepts: (check, what is expected, conversion).
+_TYPES = {
+    "float": (_is_number, "a number", float),
+    "int": (_is_integer, "an integer", int),
+    "bool": (lambda v: isinstance(v, bool), "true or false", bool),
+    "str": (lambda v: isinstance(v, str), "a string", str),
+    "list": (lambda v: isinstance(v, list), "a list", list),
+    "dict": (lambda v: isinstance(v, dict), "a mapping", dict),
+}
+
+
+def _check_type(name, value, annotation):
+    """``value`` of field ``name`` checked against its annotation (``"float"``, ``"int"``,
+    ``"list | None"``...; ``Any`` and other types are checked by the section itself)."""
+    options = [a.strip() for a in str(annotation).split("|")]
+    if value is None and "None" in options:
+        return value
+    checks = [_TYPES[a] for a in options if a in _TYPES]
+    if len(checks) != len([a for a in options if a != "None"]):
+        return value
+    for check, _, convert in checks:
+        if check(value):
+            return convert(value)
+    expected = " or ".join(what for _, what, _ in checks)
+    raise ValueError(f"{name} must be {expected}, got {value!r}")
 
 
 @dataclass
@@ -254,8 +295,12 @@ class SimConfig:
 
     @classmethod
     def from_dict(cls, data: dict | None) -> "SimConfig":
+        if data is not None and not isinstance(data, dict):
+            raise ValueError(f"a simulation config is a mapping of keys and sections, got a "
+                             f"{type(data).__name__}")
         data = dict(data or {})
-        unknown = set(data) - {f.name for f in dataclasses.fields(cls)}
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = set(data) - set(fields)
         if unknown:
             raise ValueError(f"unknown simulation config keys: {sorted(unknown)}")
         kwargs = {}
@@ -263,7 +308,7 @@ class SimConfig:
             if key in SECTIONS:
                 kwargs[key] = _section(key, SECTIONS[key], value)
             else:
-                kwargs[key] = value
+                kwargs[key] = _check_type(key, value, fields[key].type)
         return cls(**kwargs)
 
     def to_dict(self) -> dict:
@@ -271,20 +316,42 @@ class SimConfig:
 
 
 def _section(name, klass, value):
+    """Section ``name`` as a ``klass``, each value checked against its field's type."""
+    if value is not None and not isinstance(value, dict):
+        raise ValueError(f"{name} must be a mapping of keys, got {value!r}")
     value = dict(value or {})
-    known = {f.name for f in dataclasses.fields(klass)}
-    unknown = set(value) - known
+    fields = {f.name: f for f in dataclasses.fields(klass)}
+    unknown = set(value) - set(fields)
     if unknown:
         raise ValueError(f"unknown keys in simulation config section {name!r}: {sorted(unknown)}; "
-                         f"known: {sorted(known)}")
-    return klass(**value)
+                         f"known: {sorted(fields)}")
+    return klass(**{k: _check_type(f"{name}.{k}", v, fields[k].type) for k, v in value.items()})
 
 
 def load_config(path=None, overrides: dict | None = None) -> SimConfig:
-    """Read a simulation config (``None``: all defaults) and apply top-level ``overrides``."""
+    """Read a simulation config (``None``: all defaults) and apply top-level ``overrides``.
+    Every error is a one-line ValueError naming the file, the key and what is expected."""
     data = {}
     if path is not None:
-        with open(Path(path)) as f:
-            data = yaml.safe_load(f) or {}
+        data = _read_yaml(path)
     data.update({k: v for k, v in (overrides or {}).items() if v is not None})
-    return SimConfig.from_dict(data)
+    try:
+        return SimConfig.from_dict(data)
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"{path or 'simulation config'}: {exc}") from None
+
+
+def _read_yaml(path) -> dict:
+    """The YAML file ``path`` as a mapping (empty file: {})."""
+    try:
+        with open(Path(path)) as f:
+            data = yaml.safe_load(f)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(exc, "problem", None) or "cannot be parsed"
+        raise ValueError(f"{path}: not valid YAML{where}: {problem}") from None
+    if data is not None and not isinstance(data, dict):
+        raise ValueError(f"{path}: a simulation config is a mapping of keys and sections, "
+                         f"got a {type(data).__name__}")
+    return data or {}

@@ -16,7 +16,9 @@ A dataset folder holds::
     truth/moving_sources.ecsv, truth/moving_source_tracks.ecsv
     sim_config.yaml               the configuration (with its seed) that produced it
 
-Paths inside the databases are relative, so the folder can be moved.
+Every path inside the dataset is relative to the file naming it (context.yaml's databases to
+the context's folder, as ``sotodlib.core.Context`` resolves them; the ObsFileDb's and the
+ManifestDbs' files to their database's folder), so a copied or moved folder reads itself.
 """
 from __future__ import annotations
 
@@ -117,19 +119,19 @@ class DatasetWriter:
             self.det_cal_db.to_file(str(self.root / "metadata/det_cal.sqlite"))
         context = {
             "imports": ["so_transients"],
-            "tags": {"dataset": str(self.root.resolve())},
-            "obsdb": "{dataset}/obsdb.sqlite",
-            "obsfiledb": "{dataset}/obsfiledb.sqlite",
+            "tags": {},                 # none needed: paths are relative to this file
+            "obsdb": "obsdb.sqlite",
+            "obsfiledb": "obsfiledb.sqlite",
             "obs_loader_type": LOADER_NAME,
             "metadata": [
-                {"db": "{dataset}/metadata/det_info.sqlite", "det_info": True,
+                {"db": "metadata/det_info.sqlite", "det_info": True,
                  "loader": "ResultSetHdf"},
-                {"db": "{dataset}/metadata/focal_plane.sqlite", "label": "focal_plane",
+                {"db": "metadata/focal_plane.sqlite", "label": "focal_plane",
                  "unpack": "focal_plane", "loader": "ResultSetHdf"},
             ],
         }
         if self.det_cal_db is not None:
-            context["metadata"].append({"db": "{dataset}/metadata/det_cal.sqlite",
+            context["metadata"].append({"db": "metadata/det_cal.sqlite",
                                         "label": "det_cal", "unpack": "det_cal",
                                         "loader": "ResultSetHdf"})
         path = self.root / "context.yaml"

@@ -13,6 +13,7 @@ scanned footprint and crossed by a wafer near its peak.
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,8 +56,29 @@ class PointingContext:
     cv_mask: np.ndarray
     xi: np.ndarray
     eta: np.ndarray
-    det_names: np.ndarray
+    det_names: np.ndarray           # det_id of each detector
     pitch: float
+
+    def detector_index(self, name) -> int:
+        """Row of the detector named ``name``: a det_id (``w16_f090_p215A``) or a readout id
+        (``w16_f090_0430``, what ``aman.dets`` lists)."""
+        hits = np.flatnonzero(self.det_names == det_id_of(name))
+        if not len(hits):
+            raise ValueError(f"at_detector {name!r} is not a simulated detector (give a det_id "
+                             "like w16_f090_p215A or a readout id like w16_f090_0430)")
+        return int(hits[0])
+
+
+def det_id_of(name: str) -> str:
+    """The det_id of a simulated detector named by its det_id or its readout id: readout
+    ``<wafer>_<band>_<NNNN>`` is pixel NNNN // 2, polarization A (even) or B (odd), det_id
+    ``<wafer>_<band>_p<pixel:03d><pol>`` (as :func:`.focal_plane.wafer_detectors` names them)."""
+    match = re.fullmatch(r"(\w+_f\d{3})_(\d{4})", str(name))
+    if not match:
+        return str(name)
+    number = int(match.group(2))
+    return f"{match.group(1)}_p{number // 2:03d}{'B' if number % 2 else 'A'}"
+
 
 
 def _draw_position(rng, ctx: PointingContext, samp):
@@ -73,11 +95,9 @@ def _explicit_position(entry, ctx: PointingContext):
     if "ra" in entry and "dec" in entry:
         return np.radians(entry["ra"]), np.radians(entry["dec"])
     if "at_detector" in entry and "at_time" in entry:
-        hits = np.flatnonzero(ctx.det_names == entry["at_detector"])
-        if len(hits) == 0:
-            raise ValueError(f"at_detector {entry['at_detector']!r} is not a simulated detector")
+        det = ctx.detector_index(entry["at_detector"])
         samp = int(np.argmin(np.abs(ctx.timestamps - ctx.timestamps[0] - entry["at_time"])))
-        ra, dec = radec_of_samples(ctx.bore_q, ctx.xi, ctx.eta, hits[:1], [samp])
+        ra, dec = radec_of_samples(ctx.bore_q, ctx.xi, ctx.eta, [det], [samp])
         return float(ra[0]), float(dec[0])
     raise ValueError(f"a listed source needs ra/dec (deg) or at_detector/at_time: {entry}")
 

@@ -57,9 +57,16 @@ def _per_det(aman, columns):
 
 
 def _replace(aman, name, value, axes=None):
-    """Wrap ``value`` as ``aman[name]``, replacing a field of that name (a rerun)."""
+    """Wrap ``value`` as ``aman[name]``, replacing a field of that name (a rerun).
+
+    Moving a sub-AxisManager out leaves its axes (e.g. ``transient_hit``) in ``aman``, and
+    wrapping the new one would then restrict it to the old length: a rerun with more
+    candidates or hits lost the extra ones. Axes no other field uses are dropped first."""
     if name in aman._fields:
         aman.move(name, None)
+        used = {a for assigned in aman._assignments.values() for a in assigned if a}
+        for axis in [a for a in aman._axes if a not in used and a not in ("dets", "samps")]:
+            del aman._axes[axis]
     aman.wrap(name, value, axes)
 
 
@@ -80,6 +87,18 @@ def _save_candidates(step, proc_aman, aman, columns):
     saved = {k: v for k, v in columns.items() if candidates.BY_NAME[k].saved}
     proc_aman.wrap(step.name, slot_storage.pack(proc_aman, saved, np.asarray(cands.peak_det),
                                                 int(cands[SLOTS])))
+
+
+def _report_searchable(scan, where, warn_below=0.5):
+    """Fraction of the group's samples that are searched (not turnaround, nominal speed);
+    logged, as a warning below ``warn_below``."""
+    fraction = float(np.mean(scan >= 0)) if len(scan) else 0.0
+    level = logging.WARNING if fraction < warn_below else logging.INFO
+    log.log(level, "%s: %.0f %% of the time is searchable (%d scans); turnarounds, samples "
+            "off the nominal speed and the buffers around them are not searched%s", where,
+            100 * fraction, int(scan.max()) + 1 if len(scan) else 0,
+            " -- a short observation loses most of its scans" if fraction < warn_below else "")
+    return fraction
 
 
 def _check_live(dead, where, cfg):
@@ -254,8 +273,10 @@ class TransientFind(_Preprocess):
     In ``aman`` (for the next steps): ``transient_candidates`` (axis ``transient_cand``, the
     ``transient_find`` columns of :mod:`so_transients.candidates`) and ``transient_hits``
     (axis ``transient_hit``: candidate, detector, sample, S/N, RA, Dec of every clustered
-    sample). Saved to the archive: ``proc_aman.transient_candidates``, the same columns on the
-    detector axis (:mod:`so_transients.slot_storage`, ``archive_slots`` cells per detector).
+    sample). Saved to the archive: ``proc_aman.transient_find``, the same columns on the
+    detector axis (:mod:`so_transients.slot_storage`, ``archive_slots`` cells per detector),
+    and ``searchable_fraction`` (per detector, the same for the group): the fraction of the
+    time that was searched, logged as a warning below one half (short observations).
 
     Example config block::
 
@@ -320,6 +341,10 @@ class TransientFind(_Preprocess):
         _replace(aman, "transient_candidates", table)
         _replace(aman, "transient_hits", candidates.to_aman(hits, HIT_AXIS, len(hits["cand"])))
         _save_candidates(self, proc_aman, aman, cands)
+        searchable = _report_searchable(scan, str(GroupName(aman)))
+        if self.save_cfgs:     # per detector, so that groups concatenate along dets
+            proc_aman[self.name].wrap("searchable_fraction",
+                                      np.full(aman.dets.count, searchable), [(0, "dets")])
         return aman, proc_aman
 
 
@@ -409,8 +434,10 @@ class TransientFit(_Preprocess):
     pass the cuts keep NaN fit values, their cluster position and ``detected = False``.
     ``so-transients catalog`` collects these into one table.
 
-    ``plot``: one PNG per detection (S/N of the contributing detectors around the event, and
-    their positions on the focal plane) under the pipeline's ``plot_dir``.
+    ``plot``: one PNG per detection under the pipeline's ``plot_dir``, as
+    ``<plot_dir>/<ctime[:5]>/<obs_id>/<step>_<wafer>_<band>_cand<cand_id>.png``: the
+    contributing detectors' amplitude with the fitted beam model over them, flux with error,
+    fitted S/N, RA/Dec and UTC time, and their place on the focal plane.
 
     Example config block::
 
@@ -448,11 +475,11 @@ class TransientFit(_Preprocess):
     def plot(self, aman, proc_aman, filename):
         if not self.plot_cfgs:
             return
-        from .plots import plot_detection
+        from .plots import detection_name, plot_detection
 
         cands = aman.transient_candidates
         for c in np.flatnonzero(np.asarray(cands.detected, bool)):
             name = filename.replace("{ctime}", f"{str(aman.timestamps[0])[:5]}")
             name = name.replace("{obsid}", aman.obs_info.obs_id if "obs_info" in aman else "obs")
-            name = name.replace("{name}", f"{cands.bandpass[c]}_transient_{c}")
+            name = name.replace("{name}", detection_name(aman, c))
             plot_detection(aman, c, name)

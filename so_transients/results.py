@@ -99,13 +99,32 @@ def archive_table(archive_or_config, detected_only=True) -> Table:
     return table[np.asarray(table["detected"], bool)] if detected_only else table
 
 
+#: Per-group scalars sotodlib's Pipeline saves in every group (NaN without an IIR filter):
+#: they differ (NaN != NaN) between groups, so a whole-observation load cannot merge them.
+PER_GROUP_SCALARS = ("frequency_cutoffs",)
+
+
+def _get_meta_dropping(context, obs_id, fields):
+    """``context.get_meta(obs_id)`` with ``fields`` dropped from the preprocess archive's
+    entry (the context itself is left as it was)."""
+    entries = context["metadata"]
+    context["metadata"] = [
+        dict(e, drop_fields=list(e.get("drop_fields", [])) + list(fields))
+        if "preprocess" in (e.get("name"), e.get("label"), e.get("unpack")) else e
+        for e in entries]
+    try:
+        return context.get_meta(obs_id)
+    finally:
+        context["metadata"] = entries
+
+
 def observation_table(context, obs_id, detected_only=True) -> Table:
     """The whole observation's candidates through the Context (all groups at once).
 
     ``context`` must have the preprocess archive among its metadata (as
     ``sotodlib.preprocess.preprocess_util.get_preprocess_context`` arranges).
     """
-    meta = context.get_meta(obs_id)
+    meta = _get_meta_dropping(context, obs_id, PER_GROUP_SCALARS)
     table = proc_table(meta.preprocess, obs_id)
     return table[np.asarray(table["detected"], bool)] if detected_only else table
 

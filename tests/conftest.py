@@ -9,6 +9,27 @@ from so_transients.sim.config import SimConfig  # noqa: E402
 from so_transients.sim.simulate import simulate  # noqa: E402
 
 
+def load_group(dataset, wafer="w16", band="f090"):
+    """One wafer-band group of a simulated dataset's first observation, through its Context."""
+    from sotodlib import core
+
+    ctx = core.Context(str(dataset.context))
+    return ctx.get_obs(dataset.obs_ids[0], dets={"wafer_slot": wafer, "bandpass": band})
+
+
+def run_steps(aman, steps):
+    """Run preprocess ``steps`` (config entries) in process on ``aman``: each step's
+    ``process`` then ``calc_and_save``; returns the proc AxisManager."""
+    from sotodlib import core
+    from sotodlib.preprocess import Pipeline
+
+    proc = core.AxisManager(aman.dets, aman.samps)
+    for step in Pipeline(steps):
+        step.process(aman, proc)
+        step.calc_and_save(aman, proc)
+    return proc
+
+
 def run_sim(path, **sections):
     """Simulate a dataset into ``path`` from config sections given as dicts."""
     config = SimConfig.from_dict({"output": str(path), **sections})

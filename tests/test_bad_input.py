@@ -6,7 +6,7 @@ from sotodlib.preprocess import Pipeline
 
 from so_transients.results import FIRST, amplitude, proc_table
 
-from conftest import run_sim
+from conftest import load_group, run_sim, run_steps
 
 STEPS = [{"name": "transient_filter", "process": {}, "calc": True, "save": True},
          {"name": "transient_find", "calc": {}, "save": True},
@@ -25,17 +25,11 @@ def dataset(tmp_path_factory):
                                      "t_rise": 2.0}]})
 
 
-def load(dataset):
-    ctx = core.Context(str(dataset.context))
-    return ctx.get_obs(dataset.obs_ids[0], dets={"wafer_slot": "w16", "bandpass": "f090"})
+load = load_group
 
 
 def run(aman):
-    proc = core.AxisManager(aman.dets, aman.samps)
-    for step in Pipeline(STEPS):
-        step.process(aman, proc)
-        step.calc_and_save(aman, proc)
-    return proc
+    return run_steps(aman, STEPS)
 
 
 def found_flare(aman, proc, dataset):
@@ -119,3 +113,21 @@ def test_unsorted_and_gapped_timestamps_are_refused(dataset):
     aman.timestamps[5000:] += 2.0
     with pytest.raises(ValueError, match="gaps"):
         run(aman)
+
+
+def test_a_rerun_on_the_same_aman_keeps_every_candidate_and_hit(dataset):
+    """Replacing transient_candidates/hits must not restrict the new ones to the old axes'
+    lengths (the campaign reruns the steps on the same AxisManager)."""
+    aman = load(dataset)
+    run(aman)
+    strict = Pipeline([{"name": "transient_find", "calc": {"snr_threshold": 4.0}}])[0]
+    loose = Pipeline([{"name": "transient_find", "calc": {"snr_threshold": 2.5,
+                                                           "min_dets": 1}}])[0]
+    proc = core.AxisManager(aman.dets, aman.samps)
+    strict.calc_and_save(aman, proc)
+    n_strict = aman.transient_candidates.transient_cand.count
+    loose.calc_and_save(aman, proc)
+    cands, hits = aman.transient_candidates, aman.transient_hits
+    assert cands.transient_cand.count > n_strict
+    assert hits.transient_hit.count == int(np.sum(cands.n_samples))
+    assert set(np.asarray(hits.cand)) == set(range(cands.transient_cand.count))

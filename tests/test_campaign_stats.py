@@ -141,3 +141,23 @@ def test_the_filter_is_odd_so_inverted_data_give_minus_the_snr():
     minus = matched_filter(-tod, FS, SIGMA_T, cfg).snr
     assert np.abs(plus).max() > 10      # bright enough to be refiltered (S/N^2 / n_eff > 2 %)
     assert np.allclose(minus, -plus, atol=1e-5 * np.abs(plus).max())
+
+
+def test_false_positive_rates_are_per_wafer_band_hour():
+    """Three wafers of one band for 20 minutes each make one wafer-band-hour: 6 false
+    detections there are 6 per wafer-band-hour but 18 per hour of the band's observation."""
+    from so_transients.campaign.noise import Group
+    from so_transients.campaign.report import false_positive_rates
+
+    infos = {Group("obs", w, "f090"): {"duration": 1200.0, "n_false_noise": 2,
+                                        "n_false_inverted": 1} for w in ("w16", "w17", "w18")}
+    infos[Group("obs", "w16", "f150")] = {"duration": 1200.0, "n_false_noise": 0,
+                                          "n_false_inverted": 0}
+    table = false_positive_rates(infos)
+    f090 = table[table["band"] == "f090"][0]
+    assert f090["wafer_hours"] == pytest.approx(1.0) and f090["hours"] == pytest.approx(1 / 3)
+    assert f090["rate_noise_per_wbh"] == pytest.approx(6.0)
+    assert f090["rate_noise"] == pytest.approx(18.0)
+    assert f090["rate_inverted_per_wbh"] == pytest.approx(3.0)
+    f150 = table[table["band"] == "f150"][0]
+    assert f150["rate_noise_per_wbh"] == 0 and f150["rate_noise_per_wbh_err"] == pytest.approx(3.0)

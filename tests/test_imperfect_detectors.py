@@ -4,7 +4,6 @@ cut, and moving sources are flagged (in-process sotodlib Pipeline runs)."""
 import numpy as np
 import pytest
 import yaml
-from sotodlib import core
 from sotodlib.preprocess import Pipeline
 
 from so_transients import pointing
@@ -13,7 +12,7 @@ from so_transients.motion import flag_moving
 from so_transients.results import proc_table
 from so_transients.site import TEMPLATE
 
-from conftest import run_sim
+from conftest import load_group, run_sim, run_steps
 
 FLARE_TIME = 40.0
 STEPS = [{"name": "transient_filter", "process": {}, "calc": True, "save": True},
@@ -44,17 +43,11 @@ def long_dataset(tmp_path_factory):
                                      "t_rise": 2.0}]})
 
 
-def load(dataset):
-    ctx = core.Context(str(dataset.context))
-    return ctx.get_obs(dataset.obs_ids[0], dets={"wafer_slot": "w16", "bandpass": "f090"})
+load = load_group
 
 
 def run(aman, steps=STEPS):
-    proc = core.AxisManager(aman.dets, aman.samps)
-    for step in Pipeline(steps):
-        step.process(aman, proc)
-        step.calc_and_save(aman, proc)
-    return proc_table(proc, aman.obs_info.obs_id)
+    return proc_table(run_steps(aman, steps), aman.obs_info.obs_id)
 
 
 def the_flare(table, dataset):

@@ -6,9 +6,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from sotodlib.preprocess import preprocess_util as pp_util
 
 from so_transients.matching import compare_with_truth
-from so_transients.results import archive_table
+from so_transients.results import archive_table, observation_table
 from so_transients.sim.config import load_config
 from so_transients.sim.simulate import simulate
 from so_transients.site import failed_groups, run_site_pipeline, write_site_config
@@ -66,3 +67,15 @@ def test_the_catalogued_steady_source_is_masked(realistic_run):
     _, config = realistic_run
     table = archive_table(config, detected_only=False)
     assert np.sum(table["cut_reason"] == "known_source") >= 5   # crossed in most scans
+
+
+def test_a_whole_observation_of_two_bands_loads_as_one_table(realistic_run):
+    """Every field the transient steps save survives sotodlib's concatenation of the f090 and
+    f150 groups (a per-group scalar would not)."""
+    sim, config = realistic_run
+    _, ctx = pp_util.get_preprocess_context(str(config))
+    whole = observation_table(ctx, sim.obs_ids[0], detected_only=False)
+    per_group = archive_table(config, detected_only=False)
+    assert set(whole["bandpass"]) == {"f090", "f150"}
+    assert len(whole) == len(per_group)
+    assert sorted(whole["t_peak"]) == sorted(per_group["t_peak"])

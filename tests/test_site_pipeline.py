@@ -104,7 +104,7 @@ def test_catalog_command_writes_ecsv_and_fits_with_units(flare_run, tmp_path):
 def test_plots_are_written_for_detections(flare_run):
     sim, config = flare_run
     n = len(archive_table(config))
-    pngs = list((sim.context.parent / "preprocess" / "plots").rglob("*transient*.png"))
+    pngs = list((sim.context.parent / "preprocess" / "plots").rglob("*_cand*.png"))
     assert len(pngs) == n
 
 

@@ -83,6 +83,13 @@ def _track_step(track):
     return float(np.max(np.hypot(np.diff(track.xi), np.diff(track.eta))))
 
 
+def _expected_snr(signal, sigma_amp):
+    """Highest peak S/N any detector can expect from ``signal`` (dead ones, sigma 0: none)."""
+    peak = signal.max(axis=1, initial=0.0)
+    live = sigma_amp > 0
+    return float(np.max(peak[live] / sigma_amp[live], initial=0.0))
+
+
 def inject_flare(state, flare, search, options) -> CrossingResult:
     """Inject ``flare`` (a truth-table row) into one prepared group and search each crossing."""
     band = get_band(state.group.band)
@@ -105,8 +112,10 @@ def inject_flare(state, flare, search, options) -> CrossingResult:
                                track.flux[run])
         dets = _strip(state, local, options.strip_sigma * sigma)
         signal = np.zeros((len(dets), hi - lo), np.float32)
-        add_sources(signal, state.xi[dets], state.eta[dets], [local], sigma)
-        expected = float(np.max(signal.max(axis=1) / state.sigma_amp[dets], initial=0))
+        response = state.response
+        add_sources(signal, response.xi[dets], response.eta[dets], [local], sigma)
+        response.observe(signal, dets, state.model.sample_rate)
+        expected = _expected_snr(signal, state.sigma_amp[dets])
         windows.append((expected, dets, lo, hi, signal))
     windows.sort(key=lambda w: -w[0])
     tables = []

@@ -11,7 +11,11 @@ need is then kept on disk, under ``<output>/noise/groups/<group>/``:
   each worker reads only the windows it needs;
 * ``state.h5``: the rest of the AxisManager without the signal (timestamps, boresight and its
   quaternions, focal plane, det_info, flags, ``transient_filter`` with the noise model);
-* ``info.json``: the fit's error scale measured on the noise, the duration and noise level;
+* ``info.json``: the fit's error scale measured on the noise, the duration and noise level,
+  and whether the standard steps deconvolve detector time constants;
+* ``detectors.npz``: when the simulation gave the detectors imperfections, each detector's
+  true focal-plane position, sky response (gain) and time constant, from the simulation's
+  truth, so that injected flares are seen as the TOD's sources are (:class:`Response`);
 * ``false_noise.ecsv`` / ``false_inverted.ecsv`` and ``false_positives.json`` (their counts):
   the detections of the search steps run on the noise-only S/N and on its sign-inverted copy
   (the site pipeline on -TOD: every standard step and the filter are odd in the data, so its
@@ -35,6 +39,7 @@ from .. import step_fields
 from ..fit import FitInputs, measure_error_scale
 from ..noise_model import NoiseModel
 from ..pointing import BORE_Q, boresight_q
+from ..sim.imperfections import low_pass
 from ..sim.simulate import planned_detsets, simulate
 from .search_steps import SEARCH_STEPS, SearchSteps, fit_config
 
@@ -78,6 +83,31 @@ def simulate_group(sim_config, root, group: Group, digest: str) -> str:
     return str(result.context)
 
 
+def deconvolves_time_constants(standard_steps) -> bool:
+    """Whether the standard steps deconvolve detector time constants (sotodlib's
+    ``fourier_filter`` with ``timeconst_filter`` inverted)."""
+    for step in standard_steps:
+        process = step.get("process") or {}
+        params = process.get("filter_params") or {} if isinstance(process, dict) else {}
+        if (step["name"] == "fourier_filter" and process.get("filt_function") == "timeconst_filter"
+                and params.get("invert", False)):
+            return True
+    return False
+
+
+def _save_response(context, aman, folder):
+    """``detectors.npz`` from the simulation's ``truth/detectors.ecsv`` (absent: ideal)."""
+    truth = Path(context).parent / "truth" / "detectors.ecsv"
+    if not truth.exists():
+        return
+    table = Table.read(truth)
+    row = {name: i for i, name in enumerate(np.asarray(table["readout_id"]).astype(str))}
+    idx = np.array([row[name] for name in np.asarray(aman.dets.vals).astype(str)])
+    np.savez(folder / "detectors.npz", xi=np.asarray(table["xi_true"])[idx],
+             eta=np.asarray(table["eta_true"])[idx], gain=np.asarray(table["gain"])[idx],
+             tau=table["tau"].quantity.to_value("s")[idx])
+
+
 def prepare_group(context, group: Group, standard_steps, search_steps, folder):
     """Filter one noise-only group, measure the fit's error scale and store the group's state
     in ``folder`` (see the module doc); returns ``info.json``'s content."""
@@ -95,9 +125,11 @@ def prepare_group(context, group: Group, standard_steps, search_steps, folder):
     for name in [n for n in aman._fields if n not in KEEP_FIELDS]:
         aman.move(name, None)
     aman.save(str(folder / "state.h5"), overwrite=True)
+    _save_response(context, aman, folder)
     noise_rms = float(np.median(np.asarray(aman.transient_filter.noise_level)[live]))
     info = dict(error_scale=float(scale), duration=duration, n_dets=int(aman.dets.count),
-                noise_rms=noise_rms)
+                noise_rms=noise_rms,
+                tau_deconvolved=deconvolves_time_constants(standard_steps))
     (folder / "info.json").write_text(json.dumps(info, indent=1))
     return info
 
@@ -165,6 +197,36 @@ def _read_ahead(array):
 
 
 @dataclass
+class Response:
+    """How the group's detectors see the sky: true positions, gains and time constants (the
+    metadata's positions and unit gains for an ideal simulation). ``apply_tau`` is False when
+    the standard steps deconvolve the time constants again."""
+
+    xi: np.ndarray
+    eta: np.ndarray
+    gain: np.ndarray
+    tau: np.ndarray
+    apply_tau: bool
+
+    @classmethod
+    def load(cls, folder, xi, eta, info):
+        path = Path(folder) / "detectors.npz"
+        if not path.exists():
+            return cls(xi, eta, np.ones(len(xi)), np.zeros(len(xi)), False)
+        saved = np.load(path)
+        return cls(saved["xi"], saved["eta"], saved["gain"], saved["tau"],
+                   not info.get("tau_deconvolved", False))
+
+    def observe(self, signal, dets, sample_rate):
+        """``signal`` (rows: detectors ``dets``) as the detectors record it, in place."""
+        signal *= self.gain[dets][:, None].astype(np.float32)
+        if self.apply_tau:
+            for k, d in enumerate(dets):
+                if self.tau[d] > 0:
+                    signal[k] = low_pass(signal[k], self.tau[d], 1.0 / sample_rate)
+
+
+@dataclass
 class GroupState:
     """A prepared noise-only group, as the injections use it."""
 
@@ -179,6 +241,7 @@ class GroupState:
     eta: np.ndarray
     sigma_amp: np.ndarray
     search_steps: list         # the config entries of the search steps to run
+    response: Response = None  # how the detectors see an injected source
 
     @classmethod
     def load(cls, group: Group, folder, search_steps):
@@ -187,11 +250,12 @@ class GroupState:
         info = group_info(folder)
         model = NoiseModel.from_aman(aman)
         _slim(aman)
+        xi, eta = np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta)
         return cls(group, aman, _read_ahead(np.load(folder / "snr.npy", mmap_mode="r")),
                    model, info["error_scale"],
-                   np.asarray(aman.timestamps), np.asarray(aman[BORE_Q]),
-                   np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta),
-                   np.asarray(aman.transient_filter.sigma_amp), search_steps)
+                   np.asarray(aman.timestamps), np.asarray(aman[BORE_Q]), xi, eta,
+                   np.asarray(aman.transient_filter.sigma_amp), search_steps,
+                   Response.load(folder, xi, eta, info))
 
     @property
     def footprint(self):

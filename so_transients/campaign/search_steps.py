@@ -8,6 +8,7 @@ astropy table with columns (and units) of the candidate schema.
 from __future__ import annotations
 
 import copy
+import logging
 
 import numpy as np
 from astropy.table import Table, vstack
@@ -58,10 +59,17 @@ class SearchSteps:
 
     def run(self, aman, obs_id="") -> Table:
         """Run the steps on ``aman`` (which holds ``transient_snr`` and ``transient_filter``);
-        returns its detections."""
+        returns its detections. The steps' per-group INFO and WARNING lines are not shown: a
+        campaign's windows are seconds long by design, not short observations."""
         proc_aman = core.AxisManager(aman.dets, aman.samps)
-        for step in self.steps:
-            step.calc_and_save(aman, proc_aman)
+        steps_log = logging.getLogger("so_transients.processes")
+        level = steps_log.level
+        steps_log.setLevel(logging.ERROR)
+        try:
+            for step in self.steps:
+                step.calc_and_save(aman, proc_aman)
+        finally:
+            steps_log.setLevel(level)
         return detections(aman, obs_id)
 
 

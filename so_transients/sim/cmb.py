@@ -14,7 +14,6 @@ import numpy as np
 from pixell import enmap, utils
 from so3g.proj import Assembly, FocalPlane, Projectionist
 
-from ..angles import ARCMIN
 from ..bands import HARDWARE_BAND_KEY, nominal_hardware
 
 

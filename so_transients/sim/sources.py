@@ -20,7 +20,6 @@ import numpy as np
 from astropy import units as u
 from astropy.table import Table
 
-from ..angles import DEG
 from ..lightcurve import active_window, flare_flux
 from ..pointing import angular_distance_xieta, radec_of_samples, source_near
 

@@ -43,9 +43,25 @@ def case_config(name, out):
     cfg["full_check"] = {"cells": []}
     path = Path(out) / f"{name}.yaml"
     path.parent.mkdir(parents=True, exist_ok=True)
-    cfg["preprocess"] = str(ROOT / cfg["preprocess"])
+    cfg["preprocess"] = str(preprocess_config(ROOT / cfg["preprocess"], out,
+                                              deconvolve="time_constants" in keep))
     path.write_text(yaml.safe_dump(copy.deepcopy(cfg), sort_keys=False))
     return path
+
+
+def preprocess_config(path, out, deconvolve):
+    """``path``, or without its time-constant deconvolution when the simulation gives the
+    detectors none (there is then no det_cal.tau_eff to read)."""
+    if deconvolve:
+        return path
+    with open(path) as f:
+        cfg = yaml.safe_load(f)
+    cfg["process_pipe"] = [s for s in cfg["process_pipe"] if not (
+        s["name"] == "fourier_filter"
+        and (s.get("process") or {}).get("filt_function") == "timeconst_filter")]
+    derived = Path(out) / "preprocess_no_timeconst.yaml"
+    derived.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return derived
 
 
 def summary(results: Path):

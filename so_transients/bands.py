@@ -36,6 +36,13 @@ def fwhm_to_sigma(fwhm):
     return fwhm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
 
 
+def sigma_fwhm_by_band(beam_sigma, bands) -> dict:
+    """The paper's clustering scale sigma_FWHM = FWHM / (2 sqrt(ln 2)) = sqrt(2) x the beam
+    sigma, per band, from each detector's beam sigma (radians)."""
+    beam_sigma, bands = np.asarray(beam_sigma), np.asarray(bands)
+    return {b: float(np.sqrt(2) * np.median(beam_sigma[bands == b])) for b in np.unique(bands)}
+
+
 @dataclass(frozen=True)
 class Band:
     """One observing band: name, beam FWHM (radians) and white noise per sample (mJy)."""

@@ -121,11 +121,6 @@ def empty_hits() -> dict:
     return {name: np.zeros(0, dtype) for name, dtype in HIT_COLUMNS.items()}
 
 
-def filled(step, n) -> dict:
-    """Columns of ``step`` for ``n`` candidates the step did not reach."""
-    return {c.name: np.full(n, c.fill, c.dtype if c.kind != "str" else "U1") for c in columns(step)}
-
-
 def check(values: dict, step):
     """Raise unless ``values`` holds exactly the columns of ``step``, each one-dimensional."""
     expected = set(names(step))

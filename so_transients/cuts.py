@@ -3,7 +3,8 @@
 For each candidate, from the focal-plane positions of its detectors and the time each of them
 saw its highest S/N:
 
-* ``n_dets``: at least ``min_dets`` distinct detectors;
+* ``n_dets``: at least ``min_dets`` distinct detectors (``transient_find``'s setting: the
+  same threshold, so clusters it keeps pass unless its ``min_dets`` is lowered later);
 * ``aspect_ratio``: the detectors form a line along the scan direction: (extent along the scan
   + pitch) / (extent across + pitch) of their focal-plane positions is at least
   ``min_aspect_ratio`` (the pitch regularizes single rows and single pixels);
@@ -35,6 +36,7 @@ from astropy.table import Table
 
 from . import candidates
 from .angles import ARCMIN, sky_separation
+from .find import FindConfig
 from .robust import mad_std
 from .step_config import positive
 
@@ -43,7 +45,6 @@ CUT_ORDER = ("n_dets", "aspect_ratio", "time_order", "sidelobe", "known_source")
 
 @dataclass
 class CutsConfig:
-    min_dets: int = 5
     min_aspect_ratio: float = 1.5
     time_tolerance: float = 0.02        # s, rms of peak times about the drift model
     known_sources: str | None = None    # ECSV/CSV file with ra, dec columns
@@ -54,7 +55,7 @@ class CutsConfig:
     max_opposite_ratio: float = 2.0     # ... a signal of opposite sign this many times stronger
 
     def __post_init__(self):
-        positive("transient_cuts", min_dets=self.min_dets, min_aspect_ratio=self.min_aspect_ratio,
+        positive("transient_cuts", min_aspect_ratio=self.min_aspect_ratio,
                  time_tolerance=self.time_tolerance, mask_radius_arcmin=self.mask_radius_arcmin,
                  pol_fraction=self.pol_fraction, sidelobe_window=self.sidelobe_window,
                  max_opposite_ratio=self.max_opposite_ratio)
@@ -130,7 +131,8 @@ def opposite_peak(snr, dets, samps, half_window):
 
 
 def apply_cuts(cands, hits, xi, eta, gamma, timestamps, drift, pitch, cfg: CutsConfig,
-               known=(np.zeros(0), np.zeros(0)), mask_radius=0.0, snr=None):
+               known=(np.zeros(0), np.zeros(0)), mask_radius=0.0, snr=None,
+               min_dets=FindConfig.min_dets):
     """Evaluate every cut for every candidate.
 
     ``xi``, ``eta``, ``gamma``: focal plane of the group's detectors (indexed by ``hits['det']``);
@@ -156,7 +158,7 @@ def apply_cuts(cands, hits, xi, eta, gamma, timestamps, drift, pitch, cfg: CutsC
         ok_time, r_drift, r_inst = time_order(timestamps[samps], along, speed, cfg.time_tolerance)
         out["aspect_ratio"][c] = (along_ext + pitch) / (across_ext + pitch)
         out["time_rms"][c], out["instant_rms"][c] = r_drift, r_inst
-        out["pass_n_dets"][c] = len(dets) >= cfg.min_dets
+        out["pass_n_dets"][c] = len(dets) >= min_dets
         out["pass_aspect_ratio"][c] = out["aspect_ratio"][c] >= cfg.min_aspect_ratio
         out["pass_time_order"][c] = ok_time
         out["opposite_snr"][c] = opposite_peak(snr, dets, samps, half_window)
@@ -164,7 +166,7 @@ def apply_cuts(cands, hits, xi, eta, gamma, timestamps, drift, pitch, cfg: CutsC
             -out["opposite_snr"][c] <= cfg.max_opposite_ratio * cands["snr_max"][c])
         out["pass_known_source"][c] = not near[c]
         out["pol_fraction"][c] = dominant_orientation_fraction(gamma[dets])
-        out["pol_flag"][c] = len(dets) >= cfg.min_dets and out["pol_fraction"][c] >= cfg.pol_fraction
+        out["pol_flag"][c] = len(dets) >= min_dets and out["pol_fraction"][c] >= cfg.pol_fraction
     reasons = np.full(n, "", dtype=object)
     for cut in reversed(CUT_ORDER):
         reasons[~out[f"pass_{cut}"]] = cut
@@ -174,13 +176,13 @@ def apply_cuts(cands, hits, xi, eta, gamma, timestamps, drift, pitch, cfg: CutsC
 
 
 def cut_group_candidates(cands, hits, xi, eta, gamma, timestamps, drift, pitch, cfg: CutsConfig,
-                         known, radius_by_band, snr=None):
+                         known, radius_by_band, snr=None, min_dets=FindConfig.min_dets):
     """:func:`apply_cuts` on every band of a group's candidates, each band with its own
     known-source mask radius (``radius_by_band``, radians); every ``transient_cuts`` column."""
     drift = np.asarray(drift).reshape(len(cands["bandpass"]), 2)
 
     def evaluate(band, sel, sub, sub_hits):
         return apply_cuts(sub, sub_hits, xi, eta, gamma, timestamps, drift[sel], pitch, cfg,
-                          known, radius_by_band[band], snr)
+                          known, radius_by_band[band], snr, min_dets)
     return candidates.check(candidates.by_band(cands, hits, evaluate, "transient_cuts"),
                             "transient_cuts")

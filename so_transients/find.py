@@ -21,7 +21,7 @@ from numba import njit
 from scipy import ndimage
 
 from . import candidates
-from .angles import ARCMIN
+from .angles import ARCMIN, mean_direction, tangent_offsets
 from .dbscan import dbscan_labels
 from .scan_geometry import samples_in
 from .step_config import positive
@@ -117,18 +117,13 @@ def _fill_above(snr, rows, threshold, searchable, samps, values):
 
 def _tangent_plane(ra, dec):
     """Flat coordinates (radians) around the points' mean direction."""
-    vec = np.stack([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)])
-    mean = vec.mean(axis=1)
-    ra0, dec0 = np.arctan2(mean[1], mean[0]), np.arctan2(mean[2], np.hypot(mean[0], mean[1]))
-    dra = np.angle(np.exp(1j * (ra - ra0)))
-    return np.c_[dra * np.cos(dec0), dec - dec0]
+    return tangent_offsets(ra, dec, *mean_direction(ra, dec))
 
 
 def mean_radec(ra, dec):
-    """Mean direction of points on the sphere (handles RA wrap-around)."""
-    vec = np.stack([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)]).mean(axis=1)
-    return float(np.mod(np.arctan2(vec[1], vec[0]), 2 * np.pi)), \
-        float(np.arctan2(vec[2], np.hypot(vec[0], vec[1])))
+    """Mean direction of points on the sphere, RA in [0, 2 pi) (handles RA wrap-around)."""
+    ra0, dec0 = mean_direction(ra, dec)
+    return float(np.mod(ra0, 2 * np.pi)), float(dec0)
 
 
 CLUSTER_FIELDS = ("scan", "direction", "cluster_ra", "cluster_dec", "t_median", "t_start",

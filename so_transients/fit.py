@@ -84,9 +84,9 @@ class FitInputs:
     sigma_amp: np.ndarray        # (ndet,) amplitude noise, mJy
     dead: np.ndarray             # (ndet,) bool
     beam_sigma: np.ndarray       # (ndet,) rad
-    inflation: float             # the filter's correlated-sample error inflation
-    lags: np.ndarray             # the filter's response to a crossing ...
-    response: np.ndarray         # ... at these lags (s)
+    inflation: np.ndarray        # (ndet,) the filter's correlated-sample error inflation
+    lags: np.ndarray             # the filter's response to a crossing at these lags (s) ...
+    response: np.ndarray         # ... (ndet, nlag): each detector's band's
 
     @classmethod
     def from_aman(cls, aman):
@@ -96,8 +96,14 @@ class FitInputs:
                    np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta),
                    aman.transient_snr, np.asarray(summary.sigma_amp),
                    np.asarray(summary.dead, bool), np.asarray(summary.beam_sigma),
-                   float(np.median(np.asarray(summary.fit_inflation))),
-                   np.asarray(summary.lag), np.asarray(summary.response))
+                   np.asarray(summary.fit_inflation, float), np.asarray(summary.lag),
+                   np.atleast_2d(np.asarray(summary.response)))
+
+    def kernel(self, dets):
+        """``(response, inflation)`` of detectors ``dets`` (one band: they share them)."""
+        row = int(dets[0]) if len(dets) else 0
+        inflation = float(np.median(self.inflation[dets])) if len(dets) else 1.0
+        return self.response[row], inflation
 
     def amplitude(self, dets, lo, hi):
         """Amplitude (mJy) of detectors ``dets``, samples ``lo:hi``: S/N x sigma_amp."""
@@ -341,21 +347,22 @@ def null_scatter(windows, inflation=1.0):
 
 # ----------------------------------------------------------------------------- a group's fits
 
-def source_track(data: FitInputs, ra, dec, lo, hi):
+def source_track(data: FitInputs, ra, dec, lo, hi, dets):
     """``(q, track)``: the boresight quaternions of samples ``lo:hi`` and the sky position's
-    path across the focal plane then (beam sigma still unset)."""
+    path across the focal plane then, with the filter response of detectors ``dets``' band
+    (beam sigma still unset)."""
     t = data.timestamps
     q = data.bore_q[lo:hi]
     xi, eta = pointing.source_in_focal_plane(q, ra, dec)
     velocity = np.array([xi[-1] - xi[0], eta[-1] - eta[0]]) / (t[hi - 1] - t[lo])
     speed = float(np.hypot(*velocity))
-    return q, Track(xi, eta, velocity / speed, speed, 0.0, data.lags, data.response)
+    return q, Track(xi, eta, velocity / speed, speed, 0.0, data.lags, data.kernel(dets)[0])
 
 
 def fit_window(data: FitInputs, ra, dec, lo, hi, dets, cfg: FitConfig):
     """The source's track over samples ``lo:hi`` and the detectors of ``dets`` that pass
     within ``radius`` and ``cross_scan_sigma`` beam sigmas of it: ``(q, track, dets)``."""
-    q, track = source_track(data, ra, dec, lo, hi)
+    q, track = source_track(data, ra, dec, lo, hi, dets)
     mid = (hi - lo) // 2
     xi, eta = data.xi[dets], data.eta[dets]
     near = pointing.angular_distance_xieta(xi, eta, track.xi[mid], track.eta[mid]) <= cfg.radius
@@ -390,11 +397,12 @@ def fit_at(data: FitInputs, ra, dec, t_center, band_dets, error_scale, cfg: FitC
     ``band_dets``: :func:`fit_candidate`'s dict plus RA/Dec and their errors ({} when the
     window is too short)."""
     lo, hi = np.searchsorted(data.timestamps, [t_center - cfg.window, t_center + cfg.window])
-    if hi - lo < 4:
-        return {}
+    if hi - lo < 4:        # at the very end of the data: nothing to fit
+        return dict(n_fit_samples=0, n_fit_dets=0, fit_ok=False, error_scale=error_scale)
     live = band_dets[~data.dead[band_dets]]
     q, track, dets = fit_window(data, ra, dec, lo, hi, live, cfg)
-    res = fit_candidate(*window_arrays(data, track, dets, lo, hi), data.inflation, error_scale)
+    res = fit_candidate(*window_arrays(data, track, dets, lo, hi), data.kernel(live)[1],
+                        error_scale)
     res["error_scale"] = error_scale
     if res["fit_ok"]:
         mid = (hi - lo) // 2
@@ -423,7 +431,7 @@ def measure_error_scale(data: FitInputs, band_dets, cand_times, cfg: FitConfig):
         lo, hi = s - n_win, s + n_win + 1
         _, track, near = fit_window(data, ra[k], dec[k], lo, hi, dets, cfg)
         windows.append(window_arrays(data, track, near, lo, hi))
-    return null_scatter(windows, data.inflation)
+    return null_scatter(windows, data.kernel(dets)[1])
 
 
 OUTPUT_FIELDS = ("flux", "flux_err", "ra", "dec", "ra_err", "dec_err", "offset", "offset_err",

@@ -112,7 +112,8 @@ class FilterResult:
     sigma_amp: np.ndarray                   # noise of the amplitude timestream, signal units
     snr_scale: np.ndarray                   # measured / analytic S/N standard deviation
     dead: np.ndarray
-    median_psd: np.ndarray = field(default=None)   # median smoothed PSD (|X|^2 units)
+    median_psds: dict = field(default_factory=dict)   # group -> median smoothed PSD of its
+    #                                                   live rows (|X|^2 units)
     nfft: int = 0
     psd_bins: np.ndarray = field(default=None)     # (ndet, nbins) binned PSD each row used
     psd_edges: np.ndarray = field(default=None)    # rfft indices of the bins' edges
@@ -410,7 +411,10 @@ def noise_outliers(noise_level, dead, groups, cfg: FilterConfig):
         live = np.flatnonzero((groups == g) & ~dead)
         if not len(live):
             continue
-        ratio = noise_level[live] / np.median(noise_level[live])
+        level = noise_level[live]
+        # rows of numerical noise (zeros filtered upstream) must not set the reference
+        reference = np.median(level[level > 1e-6 * np.percentile(level, 75)])
+        ratio = level / reference
         out[live] = (ratio < cfg.min_noise_ratio) | (ratio > cfg.max_noise_ratio)
     return out
 
@@ -457,16 +461,43 @@ def matched_filter(signal, sample_rate, sigma_t, cfg: FilterConfig = FilterConfi
                           dead=gather("dead").astype(bool), nfft=sp.nfft,
                           psd_bins=gather("psd_all"), psd_edges=sp.edges,
                           snr_factor=gather("snr_factor"))
+    groups = np.zeros(ndet, int) if groups is None else np.asarray(groups)
     first_dead = result.dead.copy()
-    outliers = noise_outliers(result.noise_level, first_dead,
-                              np.zeros(ndet, int) if groups is None else np.asarray(groups), cfg)
+    outliers = noise_outliers(result.noise_level, first_dead, groups, cfg)
     _exclude(result, np.flatnonzero(outliers))
     psds = [c.psd for c in chunks if len(c.psd)]
     if psds:      # the live rows' PSDs, in detector order; outliers left out
-        live_psd = np.concatenate(psds)[~outliers[~first_dead]]
-        if len(live_psd):
-            result.median_psd = expand_bins(np.median(live_psd, axis=0), sp.edges)[0]
+        live_rows = np.flatnonzero(~first_dead)
+        keep = ~outliers[live_rows]
+        live_psd, live_groups = np.concatenate(psds)[keep], groups[live_rows][keep]
+        for g in np.unique(live_groups):
+            rows = live_psd[live_groups == g]
+            result.median_psds[g] = expand_bins(np.median(rows, axis=0), sp.edges)[0]
     return result
+
+
+def response_kernels(result: FilterResult, sample_rate, sigma_t, groups, order=4):
+    """The filter's response to a crossing for every detector, from its group's (band's)
+    median template width, knee and PSD: ``(lags, response (ndet, nlag), inflation (ndet,))``
+    (:func:`filter_kernels`, :func:`fit_error_inflation`). Rows of groups without a live
+    detector get a zero response and inflation 1."""
+    ndet = len(result.dead)
+    if not result.median_psds:
+        return np.zeros(1), np.ones((ndet, 1)), np.ones(ndet)
+    groups = np.asarray(groups)
+    kernels = {}
+    for g, psd in result.median_psds.items():
+        live = (groups == g) & ~result.dead
+        lags, response, acf = filter_kernels(result.nfft, sample_rate,
+                                             float(np.median(sigma_t[live])),
+                                             float(np.median(result.fknee[live])), psd, order)
+        kernels[g] = (lags, response, fit_error_inflation(response, acf))
+    lags = next(iter(kernels.values()))[0]
+    responses, inflation = np.zeros((ndet, len(lags))), np.ones(ndet)
+    for g, (_, response, infl) in kernels.items():
+        rows = groups == g
+        responses[rows], inflation[rows] = response, infl
+    return lags, responses, inflation
 
 
 def filter_kernels(nfft, sample_rate, sigma_t, fknee, psd, order=4, max_lag=1.0):

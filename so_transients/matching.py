@@ -127,8 +127,10 @@ def group_crossings(context_path, flares: Table, fwhm_by_band: dict) -> dict:
     return out
 
 
-def compare_with_truth(dataset: Path, detections: Table) -> Table:
-    """Detections matched to the dataset's injected flares."""
+def compare_with_truth(dataset: Path, detections: Table):
+    """``(matched, flares, crossings)``: the detections matched to the dataset's injected
+    flares (:func:`match`), the flares (its ``truth/flares.ecsv``) and their crossing times
+    per group (:func:`group_crossings`)."""
     flares = Table.read(dataset / "truth" / "flares.ecsv")
     fwhm = {b: get_band(b).fwhm for b in set(flares["band"])}
     crossings = group_crossings(dataset / "context.yaml", flares, fwhm)

@@ -16,12 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .angles import tangent_offsets
 
-
-def _offsets(ra, dec, ra0, dec0):
-    """Flat offsets (radians) of (ra, dec) from (ra0, dec0), shape (n, 2): (east, north)."""
-    dra = np.angle(np.exp(1j * (ra - ra0)))
-    return np.c_[dra * np.cos(dec0), dec - dec0]
 
 
 def _linear_rate(t, x, err):
@@ -95,7 +91,7 @@ def flag_moving(t, ra, dec, pos_err, max_rate, min_rate, min_significance=5.0):
     moving, rates = np.zeros(n, bool), np.full(n, np.nan)
     if n < 3:
         return moving, rates
-    xy = _offsets(ra, dec, ra[0], dec[0])
+    xy = tangent_offsets(ra, dec, ra[0], dec[0])
     pool = np.arange(n)
     while len(pool) >= 3:
         members, rate = _best_explanation(t, xy, pos_err, pool, max_rate, min_rate,

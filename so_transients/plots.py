@@ -33,7 +33,7 @@ def _model(aman, cand, dets, lo, hi):
     """The fitted beam model (mJy) of detectors ``dets`` over samples ``lo:hi``."""
     cands = aman.transient_candidates
     data = FitInputs.from_aman(aman)
-    _, track = source_track(data, float(cands.ra[cand]), float(cands.dec[cand]), lo, hi)
+    _, track = source_track(data, float(cands.ra[cand]), float(cands.dec[cand]), lo, hi, dets)
     track.sigma = float(np.median(data.beam_sigma[dets]))
     shape = beam_shape(track, data.xi[dets], data.eta[dets])
     return cands.flux[cand] * shape + cands.offset[cand], data

@@ -26,12 +26,12 @@ from sotodlib.preprocess import Pipeline, _Preprocess
 from sotodlib.tod_ops import flags as tod_flags
 
 from . import candidates, pointing, scan_geometry, slot_storage
-from .bands import fwhm_to_sigma
+from .bands import fwhm_to_sigma, sigma_fwhm_by_band
 from .candidates import CAND_AXIS, HIT_AXIS
 from .cuts import CutsConfig, cut_group_candidates, read_known_sources
 from .find import FindConfig, find_group_candidates, searchable_scans
 from .fit import FitConfig, FitInputs, fit_group_candidates
-from .matched_filter import FilterConfig, filter_kernels, fit_error_inflation, matched_filter
+from .matched_filter import FilterConfig, matched_filter, response_kernels
 from .step_config import from_yaml
 from .step_fields import GroupName, require
 
@@ -39,7 +39,8 @@ log = logging.getLogger(__name__)
 LAG_AXIS = "transient_lag"
 PSD_BIN_AXIS = "transient_psd_bin"
 PSD_EDGE_AXIS = "transient_psd_edge"
-SLOTS = "archive_slots"      # scalar in aman.transient_candidates: find's archive slots
+SLOTS = "archive_slots"      # scalars in aman.transient_candidates: find's archive slots ...
+MIN_DETS = "min_dets"        # ... and detector threshold, for the later steps
 
 
 def _register(cls):
@@ -68,13 +69,6 @@ def _replace(aman, name, value, axes=None):
         for axis in [a for a in aman._axes if a not in used and a not in ("dets", "samps")]:
             del aman._axes[axis]
     aman.wrap(name, value, axes)
-
-
-def _sigma_fwhm_by_band(aman, bands):
-    """The paper's clustering scale sigma_FWHM = sqrt(2) beam sigma of each band, from the
-    beam sigma ``transient_filter`` stored per detector."""
-    beam_sigma = np.asarray(aman.transient_filter.beam_sigma)
-    return {b: float(np.sqrt(2) * np.median(beam_sigma[bands == b])) for b in np.unique(bands)}
 
 
 def _save_candidates(step, proc_aman, aman, columns):
@@ -130,7 +124,8 @@ class TransientFilter(_Preprocess):
     variance, verified by measurement; zero where nothing may be detected), plus
     ``aman.transient_filter``: per-detector ``bandpass``, ``noise_level``, ``fknee``,
     ``sigma_amp``, ``snr_scale``, ``dead``, ``sigma_t``, ``beam_sigma``, ``fit_inflation``, the
-    filter's response kernel (``lag``, ``response``) used by ``transient_fit``, and its noise
+    filter's response to a crossing (``lag``; ``response`` per detector, from its band's
+    median noise) used by ``transient_fit``, and its noise
     weighting (``psd_bins``, ``psd_edges``, ``snr_factor``, ``nfft``, ``order``) from which
     :meth:`so_transients.noise_model.NoiseModel.from_aman` filters injected signals. The later
     steps read each detector's band and beam from here: they are configured once, in this
@@ -210,15 +205,14 @@ class TransientFilter(_Preprocess):
         return aman, proc_aman
 
     def _summary(self, aman, res, fs, sigma_t, beam_sigma, bands):
-        lags, response, inflation = self._kernels(res, fs, sigma_t)
+        lags, response, inflation = response_kernels(res, fs, sigma_t, bands, self.cfg.order)
         out = _per_det(aman, dict(noise_level=res.noise_level, fknee=res.fknee,
                                   sigma_amp=res.sigma_amp, snr_scale=res.snr_scale,
                                   dead=res.dead, sigma_t=sigma_t, beam_sigma=beam_sigma,
-                                  fit_inflation=np.full(aman.dets.count, inflation),
-                                  bandpass=bands))
+                                  fit_inflation=inflation, bandpass=bands))
         out.add_axis(core.IndexAxis(LAG_AXIS, len(lags)))
         out.wrap("lag", lags, [(0, LAG_AXIS)])
-        out.wrap("response", response, [(0, LAG_AXIS)])
+        out.wrap("response", response, [(0, "dets"), (1, LAG_AXIS)])
         if res.psd_bins is not None and len(res.psd_bins):   # the noise model (injection)
             out.add_axis(core.IndexAxis(PSD_EDGE_AXIS, len(res.psd_edges)))
             out.add_axis(core.IndexAxis(PSD_BIN_AXIS, res.psd_bins.shape[1]))
@@ -228,15 +222,6 @@ class TransientFilter(_Preprocess):
             out.wrap("nfft", int(res.nfft))
             out.wrap("order", int(self.cfg.order))
         return out
-
-    def _kernels(self, res, fs, sigma_t):
-        if res.median_psd is None:
-            return np.zeros(1), np.ones(1), 1.0
-        live = ~res.dead
-        lags, response, acf = filter_kernels(res.nfft, fs, float(np.median(sigma_t[live])),
-                                             float(np.median(res.fknee[live])), res.median_psd,
-                                             self.cfg.order)
-        return lags, response, fit_error_inflation(response, acf)
 
     def calc_and_save(self, aman, proc_aman):
         require(aman, self.name, ["transient_filter"])
@@ -327,7 +312,8 @@ class TransientFind(_Preprocess):
         wafers = (np.asarray(aman.det_info.wafer_slot).astype(str)
                   if "det_info" in aman and "wafer_slot" in aman.det_info._fields
                   else np.full(aman.dets.count, ""))
-        eps = {b: self.cfg.eps or e for b, e in _sigma_fwhm_by_band(aman, bands).items()}
+        scale = sigma_fwhm_by_band(aman.transient_filter.beam_sigma, bands)
+        eps = {b: self.cfg.eps or e for b, e in scale.items()}
         scan, directions = self._scans(aman)
         q = pointing.boresight_q(aman)
         xi, eta = aman.focal_plane.xi, aman.focal_plane.eta
@@ -338,6 +324,7 @@ class TransientFind(_Preprocess):
                                             cap, str(GroupName(aman)))
         table = candidates.to_aman(cands, CAND_AXIS, len(cands["scan"]))
         table.wrap(SLOTS, int(self.cfg.archive_slots))
+        table.wrap(MIN_DETS, int(self.cfg.min_dets))
         _replace(aman, "transient_candidates", table)
         _replace(aman, "transient_hits", candidates.to_aman(hits, HIT_AXIS, len(hits["cand"])))
         _save_candidates(self, proc_aman, aman, cands)
@@ -352,7 +339,8 @@ class TransientFind(_Preprocess):
 class TransientCuts(_Preprocess):
     """Cut candidates that are not source-like (paper section 4.2).
 
-    Cuts, in order: at least ``min_dets`` detectors; detectors along the scan direction
+    Cuts, in order: at least ``min_dets`` detectors (``transient_find``'s setting, read from
+    what it stored); detectors along the scan direction
     (focal-plane aspect ratio >= ``min_aspect_ratio``); hit times consistent with a source
     drifting across the array at the scan speed (rejects readout glitches and cosmic rays that
     hit many detectors at one instant); no signal of opposite sign more than
@@ -372,7 +360,6 @@ class TransientCuts(_Preprocess):
 
       - name: transient_cuts
         calc:
-          min_dets: 5
           min_aspect_ratio: 1.5
           time_tolerance: 0.02            # s
           known_sources: null             # ECSV or CSV with ra, dec
@@ -397,7 +384,8 @@ class TransientCuts(_Preprocess):
         cands = candidates.from_aman(aman.transient_candidates, CAND_AXIS)
         hits = candidates.from_aman(aman.transient_hits, HIT_AXIS)
         bands = np.asarray(aman.transient_filter.bandpass).astype(str)
-        radius = {b: self.cfg.mask_radius or r for b, r in _sigma_fwhm_by_band(aman, bands).items()}
+        scale = sigma_fwhm_by_band(aman.transient_filter.beam_sigma, bands)
+        radius = {b: self.cfg.mask_radius or r for b, r in scale.items()}
         drift = scan_geometry.drift_velocity(aman.timestamps, pointing.boresight_q(aman),
                                              cands["cluster_ra"], cands["cluster_dec"],
                                              cands["t_median"])
@@ -405,7 +393,8 @@ class TransientCuts(_Preprocess):
         xi, eta, gamma = (np.asarray(fp[k]) for k in ("xi", "eta", "gamma"))
         result = cut_group_candidates(cands, hits, xi, eta, gamma, np.asarray(aman.timestamps),
                                       drift, scan_geometry.detector_pitch(xi, eta), self.cfg,
-                                      self.known, radius, aman.transient_snr)
+                                      self.known, radius, aman.transient_snr,
+                                      int(aman.transient_candidates[MIN_DETS]))
         candidates.add_to_aman(aman.transient_candidates, result, CAND_AXIS)
         _save_candidates(self, proc_aman, aman, result)
         return aman, proc_aman

@@ -122,7 +122,7 @@ def test_too_few_detectors_and_cross_scan_lines_are_rejected():
     xi2, eta2 = eta, xi
     cands, hits = _candidate(range(4), np.full(4, 2000))
     out = apply_cuts(cands, hits, xi2, eta2, gamma, t, np.array([[SPEED, 0.0]]), PITCH,
-                     CutsConfig(min_dets=3))
+                     CutsConfig(), min_dets=3)
     assert out["cut_reason"][0] == "aspect_ratio"
 
 

@@ -98,7 +98,9 @@ def test_fifteen_percent_bad_detectors_keep_the_fitted_snr(dataset, kind):
     found = the_flare(run(spoiled), dataset)
     assert np.all(np.asarray(spoiled.transient_filter.dead)[lost])
     expected = reference["snr_fit"] * beam_weight_kept(aman, found, lost)
-    assert found["snr_fit"] == pytest.approx(expected, rel=0.10)
+    assert found["snr_fit"] == pytest.approx(expected, rel=0.10)    # the target
+    # each error scale is the MAD of 200 null fits (~6 % precise): their ratio is within
+    # 3 x sqrt(2) x 6 % = 25 %
     assert found["error_scale"] == pytest.approx(reference["error_scale"], rel=0.25)
     assert abs(found["flux"] - reference["flux"]) < 3 * found["flux_err"]
 

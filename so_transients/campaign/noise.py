@@ -29,6 +29,7 @@ import logging
 import mmap
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 from astropy.table import Table
@@ -39,7 +40,7 @@ from .. import step_fields
 from ..fit import FitInputs, measure_error_scale
 from ..noise_model import NoiseModel
 from ..pointing import BORE_Q, boresight_q
-from ..sim.imperfections import low_pass
+from ..sim.imperfections import respond_to_sky
 from ..sim.simulate import planned_detsets, simulate
 from .search_steps import SEARCH_STEPS, SearchSteps, fit_config
 
@@ -218,12 +219,10 @@ class Response:
                    not info.get("tau_deconvolved", False))
 
     def observe(self, signal, dets, sample_rate):
-        """``signal`` (rows: detectors ``dets``) as the detectors record it, in place."""
-        signal *= self.gain[dets][:, None].astype(np.float32)
-        if self.apply_tau:
-            for k, d in enumerate(dets):
-                if self.tau[d] > 0:
-                    signal[k] = low_pass(signal[k], self.tau[d], 1.0 / sample_rate)
+        """``signal`` (rows: detectors ``dets``) as the detectors record it, in place
+        (:func:`so_transients.sim.imperfections.respond_to_sky`)."""
+        tau = self.tau[dets] if self.apply_tau else np.zeros(len(dets))
+        respond_to_sky(signal, SimpleNamespace(gain=self.gain[dets], tau=tau), 1.0 / sample_rate)
 
 
 @dataclass

@@ -54,7 +54,9 @@ class SearchSteps:
             entry["save"] = False
             entry["plot"] = False
             if entry["name"] == "transient_fit" and error_scale is not None:
-                entry.setdefault("calc", {})["error_scale"] = float(error_scale)
+                calc = entry.get("calc")
+                entry["calc"] = {**(calc if isinstance(calc, dict) else {}),
+                                 "error_scale": float(error_scale)}
             self.steps.append(Pipeline.PIPELINE[entry["name"]](entry))
 
     def run(self, aman, obs_id="") -> Table:
@@ -62,7 +64,7 @@ class SearchSteps:
         returns its detections. The steps' per-group INFO and WARNING lines are not shown: a
         campaign's windows are seconds long by design, not short observations."""
         proc_aman = core.AxisManager(aman.dets, aman.samps)
-        steps_log = logging.getLogger("so_transients.processes")
+        steps_log = logging.getLogger("so_transients")
         level = steps_log.level
         steps_log.setLevel(logging.ERROR)
         try:

@@ -85,6 +85,14 @@ class FilterConfig:
             if not getattr(self, key) > 0:
                 raise ValueError(f"{key} must be positive, got {getattr(self, key)}")
         self.white_band = tuple(self.white_band)
+        unknown = sorted(set(self.beam_fwhm_arcmin) - set(nominal_fwhm_arcmin()))
+        if unknown:
+            raise ValueError(f"beam_fwhm_arcmin: unknown band(s) {unknown}; known: "
+                             f"{sorted(nominal_fwhm_arcmin())}")
+        for band, fwhm in self.beam_fwhm_arcmin.items():
+            if isinstance(fwhm, bool) or not isinstance(fwhm, (int, float)) or fwhm <= 0:
+                raise ValueError(f"beam_fwhm_arcmin: {band} must be a positive number of "
+                                 f"arcmin, got {fwhm!r}")
 
     def beam_fwhm(self, bands):
         """Beam FWHM (radians) of detectors in ``bands``: the config's ``beam_fwhm_arcmin``

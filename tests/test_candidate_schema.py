@@ -53,3 +53,27 @@ def test_yaml_units_are_converted_once():
     cfg = from_yaml(FindConfig, {"eps_arcmin": 1.5}, "transient_find")
     assert cfg.eps == pytest.approx(np.radians(1.5 / 60))
     assert from_yaml(FitConfig, {}, "transient_fit").radius == pytest.approx(np.radians(1.0))
+
+
+@pytest.mark.parametrize("step, section, message", [
+    ({"name": "transient_find", "calc": {"snr_threshold": "abc"}},
+     "calc", "transient_find: snr_threshold: expected float, got 'abc'"),
+    ({"name": "transient_find", "calc": {"min_dets": -3}},
+     "calc", "transient_find: min_dets must be positive, got -3"),
+    ({"name": "transient_cuts", "calc": {"min_aspect_ratoi": 2}},
+     "calc", "transient_cuts: unknown key(s) min_aspect_ratoi"),
+    ({"name": "transient_filter", "process": {"beam_fwhm_arcmin": {"f9O": 2.2}}},
+     "process", "transient_filter: beam_fwhm_arcmin: unknown band(s) ['f9O']"),
+    ({"name": "transient_fit", "calc": {"min_snr": "high"}},
+     "calc", "transient_fit: min_snr: expected float"),
+])
+def test_the_pipeline_refuses_a_bad_step_config_when_it_is_built(step, section, message):
+    """sotodlib builds the steps before reading any data: the error comes then, in one line
+    naming the step and the key."""
+    from sotodlib.preprocess import Pipeline
+
+    import so_transients  # noqa: F401  registers the steps
+
+    with pytest.raises(ConfigError) as err:
+        Pipeline([step])
+    assert message in str(err.value) and "\n" not in str(err.value)

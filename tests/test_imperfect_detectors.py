@@ -168,3 +168,19 @@ def test_flag_moving_tells_moving_from_static_sources():
     # two detections alone are never flagged
     assert not flag_moving(t[:2], moving_ra[:2], dec[:2], err[:2], 5 * ARCMIN / 60,
                            0.1 * ARCMIN / 60)[0].any()
+
+
+def test_a_static_detection_near_a_moving_track_stays_static():
+    """A flare detected once, 40" off the line of a moving source's four detections, is not
+    taken into the track (it would be lost as 'moving', and bias the rate)."""
+    dec0, ra0 = -0.5, 1.0
+    t = np.array([0.0, 60.0, 180.0, 240.0, 120.0])
+    rate = 0.5 * ARCMIN / 60
+    ra = ra0 + rate * t / np.cos(dec0)
+    dec = np.full(5, dec0)
+    dec[4] += 40 * ARCSEC                      # the flare, off the track by 40"
+    err = np.full(5, np.hypot(3 * ARCSEC, 10 * ARCSEC))
+    moving, rates = flag_moving(t, ra, dec, err, max_rate=5 * ARCMIN / 60,
+                                min_rate=0.1 * ARCMIN / 60)
+    assert list(moving) == [True, True, True, True, False]
+    assert rates[0] / (ARCMIN / 60) == pytest.approx(0.5, rel=1e-6)

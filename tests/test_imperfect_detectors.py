@@ -110,25 +110,25 @@ def shipped_steps():
         return yaml.safe_load(f)["process_pipe"]
 
 
-def test_a_nan_detector_is_cut_before_the_pca_and_the_flare_is_found(long_dataset):
+def test_a_nan_detector_is_cut_before_the_pca_and_the_flare_is_found(long_dataset, tmp_path):
     dataset = long_dataset
     aman = load(dataset)
     aman.signal[7, 1000:1050] = np.nan              # 50 NaN samples in one detector
     name = aman.dets.vals[7]
-    proc = Pipeline(shipped_steps()).run(aman)[0]
+    proc = Pipeline(shipped_steps(), plot_dir=str(tmp_path)).run(aman)[0]
     assert name not in aman.dets.vals and aman.dets.count == 859   # cut by the noise step
     table = proc_table(proc, aman.obs_info.obs_id)
     assert np.any(np.abs(table["t_peak"][table["detected"]] - dataset.flares["t_peak"][0]) < 0.5)
 
 
-def test_nan_spread_to_every_detector_fails_the_group_visibly(long_dataset):
+def test_nan_spread_to_every_detector_fails_the_group_visibly(long_dataset, tmp_path):
     """Without the cut, sotodlib's PCA spreads one NaN detector to all: transient_filter
     refuses the group, naming it, instead of returning nothing."""
     aman = load(long_dataset)
     aman.signal[7, 1000:1050] = np.nan
     steps = [s for s in shipped_steps() if s["name"] != "noise"]
     with pytest.raises(ValueError, match="no usable detector") as err:
-        Pipeline(steps).run(aman)
+        Pipeline(steps, plot_dir=str(tmp_path)).run(aman)
     assert aman.obs_info.obs_id in str(err.value) and "f090" in str(err.value)
 
 

@@ -109,11 +109,6 @@ def _check_live(dead, where, cfg):
             "the median)", where, n_dead, n)
 
 
-def _step_config(step, cls, section):
-    """The step's YAML section (``process`` or ``calc``: a mapping, or true) as ``cls``."""
-    return from_yaml(cls, section if isinstance(section, dict) else {}, step.name)
-
-
 # ----------------------------------------------------------------------------- the steps
 
 @_register
@@ -163,7 +158,7 @@ class TransientFilter(_Preprocess):
 
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
-        self.cfg = _step_config(self, FilterConfig, self.process_cfgs)
+        self.cfg = from_yaml(FilterConfig, self.process_cfgs, self.name)
 
     def _mask(self, aman):
         if not self.cfg.mask_flags:
@@ -283,7 +278,7 @@ class TransientFind(_Preprocess):
 
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
-        self.cfg = _step_config(self, FindConfig, self.calc_cfgs)
+        self.cfg = from_yaml(FindConfig, self.calc_cfgs, self.name)
 
     @staticmethod
     def _turnarounds(aman):
@@ -375,7 +370,7 @@ class TransientCuts(_Preprocess):
 
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
-        self.cfg = _step_config(self, CutsConfig, self.calc_cfgs)
+        self.cfg = from_yaml(CutsConfig, self.calc_cfgs, self.name)
         self.known = (read_known_sources(self.cfg.known_sources, self.cfg.known_sources_unit)
                       if self.cfg.known_sources else (np.zeros(0), np.zeros(0)))
 
@@ -450,7 +445,7 @@ class TransientFit(_Preprocess):
 
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
-        self.cfg = _step_config(self, FitConfig, self.calc_cfgs)
+        self.cfg = from_yaml(FitConfig, self.calc_cfgs, self.name)
 
     def calc_and_save(self, aman, proc_aman):
         require(aman, self.name)

@@ -59,7 +59,7 @@ def _convert(value, hint, where):
 
 def from_yaml(cls, cfg, step):
     """An instance of the dataclass ``cls`` from the YAML mapping ``cfg`` of step ``step``."""
-    cfg = {} if cfg is None or cfg is True else cfg
+    cfg = {} if cfg is None or isinstance(cfg, bool) else cfg   # `calc: true`, or no section
     if not isinstance(cfg, dict):
         raise ConfigError(f"{step}: the config block must be a mapping of keys, got {cfg!r}")
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}

@@ -66,6 +66,8 @@ def test_yaml_units_are_converted_once():
      "process", "transient_filter: beam_fwhm_arcmin: unknown band(s) ['f9O']"),
     ({"name": "transient_fit", "calc": {"min_snr": "high"}},
      "calc", "transient_fit: min_snr: expected float"),
+    ({"name": "transient_fit", "calc": ["min_snr", 5]},
+     "calc", "transient_fit: the config block must be a mapping of keys"),
 ])
 def test_the_pipeline_refuses_a_bad_step_config_when_it_is_built(step, section, message):
     """sotodlib builds the steps before reading any data: the error comes then, in one line

@@ -39,8 +39,7 @@ def fit_config(search_steps) -> FitConfig:
     entry = next((s for s in search_steps if s["name"] == "transient_fit"), None)
     if entry is None:
         raise ValueError("the preprocess config has no transient_fit step")
-    calc = entry.get("calc")
-    return from_yaml(FitConfig, calc if isinstance(calc, dict) else {}, "transient_fit")
+    return from_yaml(FitConfig, entry.get("calc"), "transient_fit")
 
 
 class SearchSteps:

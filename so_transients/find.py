@@ -38,7 +38,7 @@ class FindConfig:
     min_dets: int = 5                 # clusters on fewer detectors cannot pass the cuts
     max_candidates: int = 2000        # per group; the rest are dropped with a warning
     speed_tolerance: float = 0.1      # samples scanning further off the nominal speed ...
-    turnaround_buffer: float = 2.0    # ... and this many s around them are not searched
+    turnaround_buffer: float = 0.0    # ... and this many s around them are not searched
     archive_slots: int = 4            # catalogue cells per detector in the archive
 
     def __post_init__(self):
@@ -184,16 +184,19 @@ def _add_candidate(cands, hits, members, scan, direction, dets, samps, values, r
     hits["cand"].extend([cid] * len(members))
 
 
-def searchable_scans(in_turnaround, speed, nominal_speed, timestamps, az, cfg: FindConfig):
+def searchable_scans(speed, nominal_speed, timestamps, az, cfg: FindConfig):
     """Scan index per sample (-1 where nothing is searched) and each scan's direction.
 
-    Left out: samples flagged as turnaround (``in_turnaround``), samples whose on-sky
-    ``speed`` differs from ``nominal_speed`` by more than ``cfg.speed_tolerance``
-    (the template assumes the nominal speed), and ``cfg.turnaround_buffer`` seconds around
-    either (the high-pass rings for ~1/f_hp after the kink a turnaround leaves).
+    Searched: every sample whose on-sky ``speed`` is within ``cfg.speed_tolerance`` of
+    ``nominal_speed`` (the template's), which is the whole constant-velocity part of each
+    sweep up to its first and last sample; the turnarounds themselves, where the speed falls
+    towards zero, split the scans. ``cfg.turnaround_buffer`` seconds around the off-speed
+    samples may be left out as well (0 by default: the filter runs over the whole TOD, so
+    nothing rings at the scan ends; a larger value is for data whose turnarounds excite the
+    telescope). Turnaround flags of the standard steps are not used: their buffers (sotodlib's
+    ``t_buffer``) reach into the constant-velocity part, which would go unsearched.
     """
-    skip = (np.asarray(in_turnaround, bool)
-            | (np.abs(speed / nominal_speed - 1) > cfg.speed_tolerance))
+    skip = np.abs(np.asarray(speed) / nominal_speed - 1) > cfg.speed_tolerance
     n_buf = samples_in(timestamps, cfg.turnaround_buffer)
     if n_buf and skip.any():
         skip = ndimage.maximum_filter1d(skip.view(np.uint8), 2 * n_buf + 1).astype(bool)

@@ -37,8 +37,11 @@ from . import candidates, pointing, spectral_ops
 from .angles import ARCMIN, ARCSEC, DEG
 from .motion import flag_moving
 from .robust import mad_std
-from .scan_geometry import samples_in
+from .scan_geometry import constant_velocity, samples_in
 from .step_config import positive
+
+#: The scan-speed tolerance ``transient_find`` stores in ``aman.transient_candidates``.
+SPEED_TOLERANCE = "speed_tolerance"
 
 FIT_FIELDS = ("flux", "flux_err", "dxi", "deta", "dxi_err", "deta_err", "offset", "offset_err",
               "snr_fit", "chi2_red", "n_fit_samples", "n_fit_dets", "fit_ok")
@@ -87,17 +90,29 @@ class FitInputs:
     inflation: np.ndarray        # (ndet,) the filter's correlated-sample error inflation
     lags: np.ndarray             # the filter's response to a crossing at these lags (s) ...
     response: np.ndarray         # ... (ndet, nlag): each detector's band's
+    scanning: np.ndarray = None  # (nsamps,) bool: at the template's scan speed (None: all)
 
     @classmethod
-    def from_aman(cls, aman):
-        """The inputs from an AxisManager that ``transient_filter`` has processed."""
+    def from_aman(cls, aman, speed_tolerance=None):
+        """The inputs from an AxisManager that ``transient_filter`` has processed; samples
+        scanning more than ``speed_tolerance`` off the nominal speed (turnarounds, where the
+        filter's response to a crossing is not the template's) are not fitted. By default
+        the tolerance ``transient_find`` searched with (``aman.transient_candidates``)."""
+        if speed_tolerance is None:
+            cands = aman.transient_candidates if "transient_candidates" in aman._fields else {}
+            if SPEED_TOLERANCE not in getattr(cands, "_fields", ()):
+                raise ValueError("aman.transient_candidates holds no speed_tolerance: run "
+                                 "transient_find first")
+            speed_tolerance = float(cands[SPEED_TOLERANCE])
         summary = aman.transient_filter
-        return cls(np.asarray(aman.timestamps), pointing.boresight_q(aman),
+        t, az, el = aman.timestamps, aman.boresight.az, aman.boresight.el
+        return cls(np.asarray(t), pointing.boresight_q(aman),
                    np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta),
                    aman.transient_snr, np.asarray(summary.sigma_amp),
                    np.asarray(summary.dead, bool), np.asarray(summary.beam_sigma),
                    np.asarray(summary.fit_inflation, float), np.asarray(summary.lag),
-                   np.atleast_2d(np.asarray(summary.response)))
+                   np.atleast_2d(np.asarray(summary.response)),
+                   constant_velocity(t, az, el, speed_tolerance))
 
     def kernel(self, dets):
         """``(response, inflation)`` of detectors ``dets`` (one band: they share them)."""
@@ -106,9 +121,13 @@ class FitInputs:
         return self.response[row], inflation
 
     def amplitude(self, dets, lo, hi):
-        """Amplitude (mJy) of detectors ``dets``, samples ``lo:hi``: S/N x sigma_amp."""
+        """Amplitude (mJy) of detectors ``dets``, samples ``lo:hi``: S/N x sigma_amp; zero
+        (not fitted) where the boresight is not scanning at the template's speed."""
         sigma = np.asarray(self.sigma_amp, np.float32)[dets]
-        return np.asarray(self.snr[dets, lo:hi]) * sigma[:, None]
+        amp = np.asarray(self.snr[dets, lo:hi]) * sigma[:, None]
+        if self.scanning is not None:
+            amp *= self.scanning[lo:hi]
+        return amp
 
 
 @dataclass
@@ -354,7 +373,10 @@ def source_track(data: FitInputs, ra, dec, lo, hi, dets):
     t = data.timestamps
     q = data.bore_q[lo:hi]
     xi, eta = pointing.source_in_focal_plane(q, ra, dec)
-    velocity = np.array([xi[-1] - xi[0], eta[-1] - eta[0]]) / (t[hi - 1] - t[lo])
+    # the drift at the window's centre (the window may reach into a turnaround)
+    mid, k = (hi - lo) // 2, max(1, (hi - lo) // 20)
+    a, b = max(mid - k, 0), min(mid + k, hi - lo - 1)
+    velocity = np.array([xi[b] - xi[a], eta[b] - eta[a]]) / (t[lo + b] - t[lo + a])
     speed = float(np.hypot(*velocity))
     return q, Track(xi, eta, velocity / speed, speed, 0.0, data.lags, data.kernel(dets)[0])
 

@@ -18,19 +18,17 @@ package registration imports this module.
 from __future__ import annotations
 
 import logging
-import warnings
 
 import numpy as np
 from sotodlib import core
 from sotodlib.preprocess import Pipeline, _Preprocess
-from sotodlib.tod_ops import flags as tod_flags
 
 from . import candidates, pointing, scan_geometry, slot_storage
 from .bands import fwhm_to_sigma, sigma_fwhm_by_band
 from .candidates import CAND_AXIS, HIT_AXIS
 from .cuts import CutsConfig, cut_group_candidates, read_known_sources
 from .find import FindConfig, find_group_candidates, searchable_scans
-from .fit import FitConfig, FitInputs, fit_group_candidates
+from .fit import SPEED_TOLERANCE, FitConfig, FitInputs, fit_group_candidates
 from .matched_filter import FilterConfig, matched_filter, response_kernels
 from .step_config import from_yaml
 from .step_fields import GroupName, require
@@ -40,7 +38,8 @@ LAG_AXIS = "transient_lag"
 PSD_BIN_AXIS = "transient_psd_bin"
 PSD_EDGE_AXIS = "transient_psd_edge"
 SLOTS = "archive_slots"      # scalars in aman.transient_candidates: find's archive slots ...
-MIN_DETS = "min_dets"        # ... and detector threshold, for the later steps
+MIN_DETS = "min_dets"        # ... and detector threshold, for the later steps (and
+#                              fit.SPEED_TOLERANCE, the scan-speed tolerance)
 
 
 def _register(cls):
@@ -237,13 +236,13 @@ class TransientFind(_Preprocess):
     """Find candidate source crossings: S/N >= 3 samples clustered on the sky per scan.
 
     Needs ``transient_filter`` before it (each detector's band and beam come from there).
-    Scans are split at turnarounds from ``aman.flags.turnarounds`` (sotodlib's
-    ``flag_turnarounds`` step) when present, otherwise computed with
-    ``tod_ops.flags.get_turnaround_flags``. RA/Dec is computed only for the selected samples
-    (so3g quaternions). Samples where the scan speed differs from the template's by more than
-    ``speed_tolerance`` (the ends of turnarounds) are left out too, and so are
-    ``turnaround_buffer`` seconds on either side of them, where the high-pass filter still
-    rings from the turnaround. DBSCAN clusters them per scan and band with
+    Every sample scanning at the template's speed (within ``speed_tolerance``, measured from
+    ``aman.boresight``) is searched, up to the first and last sample of each
+    constant-velocity stretch; the turnarounds, where the speed falls towards zero, split the
+    scans (``aman.flags.turnarounds`` is not used: its buffers reach into the scans).
+    ``turnaround_buffer`` seconds around the turnarounds can be left out as well (0 by
+    default). RA/Dec is computed only for the selected samples (so3g quaternions). DBSCAN
+    clusters them per scan and band with
     ``eps = sigma_FWHM = FWHM / (2 sqrt(ln 2))`` unless ``eps_arcmin`` is given; clusters of more
     than 10 samples on at least ``min_dets`` detectors become candidates (at most
     ``max_candidates`` per group, with a warning). Clusters on fewer detectors are almost all
@@ -269,7 +268,7 @@ class TransientFind(_Preprocess):
           min_dets: 5                     # ... on at least this many detectors
           max_candidates: 2000
           speed_tolerance: 0.1            # leave out samples scanning >10% off nominal speed
-          turnaround_buffer: 2.0          # s left out around those samples
+          turnaround_buffer: 0.0          # s left out around those samples
           archive_slots: 4                # candidate cells per detector in the archive
         save: true
     """
@@ -280,24 +279,11 @@ class TransientFind(_Preprocess):
         super().__init__(step_cfgs)
         self.cfg = from_yaml(FindConfig, self.calc_cfgs, self.name)
 
-    @staticmethod
-    def _turnarounds(aman):
-        if "flags" in aman and "turnarounds" in aman.flags._fields:
-            return scan_geometry.boresight_mask(aman.flags.turnarounds)
-        try:
-            with warnings.catch_warnings():     # sotodlib warns on TODs shorter than a scan
-                warnings.simplefilter("ignore", RuntimeWarning)
-                ta, _, _ = tod_flags.get_turnaround_flags(aman, merge=False, merge_lr=False,
-                                                          merge_subscans=False)
-            return scan_geometry.boresight_mask(ta)
-        except (ValueError, IndexError):   # shorter than one scan: no turnaround to flag
-            return np.zeros(aman.samps.count, bool)
-
     def _scans(self, aman):
         if not aman.dets.count:
             return np.full(aman.samps.count, -1), np.zeros(0, int)
         t, az, el = aman.timestamps, aman.boresight.az, aman.boresight.el
-        return searchable_scans(self._turnarounds(aman), scan_geometry.sample_speed(t, az, el),
+        return searchable_scans(scan_geometry.sample_speed(t, az, el),
                                 scan_geometry.scan_speed(t, az, el, str(GroupName(aman))),
                                 t, az, self.cfg)
 
@@ -320,6 +306,7 @@ class TransientFind(_Preprocess):
         table = candidates.to_aman(cands, CAND_AXIS, len(cands["scan"]))
         table.wrap(SLOTS, int(self.cfg.archive_slots))
         table.wrap(MIN_DETS, int(self.cfg.min_dets))
+        table.wrap(SPEED_TOLERANCE, float(self.cfg.speed_tolerance))
         _replace(aman, "transient_candidates", table)
         _replace(aman, "transient_hits", candidates.to_aman(hits, HIT_AXIS, len(hits["cand"])))
         _save_candidates(self, proc_aman, aman, cands)

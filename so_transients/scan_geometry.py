@@ -45,11 +45,11 @@ def scan_speed(timestamps, az, el, where=""):
     return float(np.median(moving))
 
 
-def boresight_mask(flag):
-    """Boolean (samps,) mask of a boresight flag: Ranges, RangesMatrix or array (for
-    per-detector flags, the first detector's, since they are the same for all)."""
-    mask = np.asarray(flag.mask() if hasattr(flag, "mask") else flag, bool)
-    return mask[0] if mask.ndim == 2 else mask
+def constant_velocity(timestamps, az, el, tolerance=0.01):
+    """Samples where the boresight scans at its nominal on-sky speed (within ``tolerance``):
+    the constant-velocity part of every sweep, turnarounds excluded."""
+    speed = sample_speed(timestamps, az, el)
+    return np.abs(speed / scan_speed(timestamps, az, el) - 1) <= tolerance
 
 
 def samples_in(timestamps, seconds) -> int:

@@ -26,7 +26,7 @@ REQUIRED = {
 }
 OPTIONAL = {
     "transient_filter": ("obs_info.obs_id", "flags"),
-    "transient_find": ("flags.turnarounds", "det_info.wafer_slot") + _POINTING_OPTIONAL,
+    "transient_find": ("det_info.wafer_slot",) + _POINTING_OPTIONAL,
     "transient_cuts": _POINTING_OPTIONAL,
     "transient_fit": ("transient_hits",) + _POINTING_OPTIONAL,
 }

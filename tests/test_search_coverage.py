@@ -41,15 +41,66 @@ def test_a_stretch_of_constant_speed_is_searched_whole(dataset, caplog):
     assert any("searchable" in r.message and r.levelno == logging.INFO for r in caplog.records)
 
 
-def test_a_short_observation_warns_that_it_loses_scans(dataset, caplog):
-    """200 s of 90 s sweeps: the turnarounds, off-speed samples and their buffers leave less
-    than half of the time searchable, which is logged as a warning and archived."""
-    aman = load(dataset)
+def _turnaround_window(aman, margin):
+    """``aman`` restricted to its first turnaround (boresight slower than nominal) plus
+    ``margin`` seconds of scanning on either side."""
+    from so_transients.scan_geometry import constant_velocity
+
+    bore = aman.boresight
+    slow = np.flatnonzero(~constant_velocity(aman.timestamps, bore.az, bore.el))
+    slow = slow[(slow > 10) & (slow < aman.samps.count - 10)]
+    first_run = slow[: np.argmax(np.diff(slow) > 1) + 1] if np.any(np.diff(slow) > 1) else slow
+    rate = 1 / np.median(np.diff(aman.timestamps))
+    start = aman.samps.offset + first_run[0] - int(margin * rate)
+    aman.restrict("samps", (start, start + len(first_run) + int(2 * margin * rate)))
+    return aman
+
+
+def test_a_stretch_of_mostly_turnaround_warns_that_little_is_searched(dataset, caplog):
+    """A 3.1 s turnaround with 1 s of scanning on either side: only the scanning and the
+    first and last ~0.15 s of the turnaround (within 10 % of the scan speed) are searched,
+    less than half of the time, which is logged as a warning and archived."""
+    aman = _turnaround_window(load(dataset), 1.0)
     with caplog.at_level(logging.INFO, logger="so_transients.processes"):
         proc = run(aman)
-    assert np.asarray(proc.transient_find.searchable_fraction)[0] < 0.5
-    assert any("short observation" in r.message and r.levelno == logging.WARNING
+    fraction = np.asarray(proc.transient_find.searchable_fraction)[0]
+    assert 0.3 < fraction < 0.5
+    assert any("searchable" in r.message and r.levelno == logging.WARNING
                for r in caplog.records)
+
+
+def test_a_whole_observation_is_searched_up_to_the_turnarounds(dataset):
+    """200 s of 90 s sweeps with 3.1 s turnarounds: everything but the turnarounds (and the
+    first and last ~0.15 s of each, > 10 % off the scan speed) is searched."""
+    fraction = np.asarray(run(load(dataset)).transient_find.searchable_fraction)[0]
+    turnaround_share = 2 * (3.11 - 2 * 0.156) / 200.0
+    assert fraction == pytest.approx(1 - turnaround_share, abs=0.005)
+
+
+@pytest.fixture(scope="module")
+def scan_end_dataset(tmp_path_factory):
+    """130 s of w16 f090, white noise only. The first sweep's constant-velocity part ends at
+    86.89 s and the second's starts at 90 s (3.11 s turnaround, scan pattern defaults); two
+    1.5 Jy flares (t_r = 1 s) are centred where p215A points 1 s before and 1 s after it."""
+    flares = [{"at_detector": "w16_f090_p215A", "at_time": t, "t_peak": t,
+               "s_peak_mjy": 1500.0, "t_rise": 1.0} for t in (85.89, 91.0)]
+    return run_sim(tmp_path_factory.mktemp("scan_ends"), seed=13,
+                   observation={"duration": 130.0}, instrument={"bands": ["f090"]},
+                   atmosphere={"enabled": False}, cmb={"enabled": False},
+                   flares={"list": flares})
+
+
+@pytest.mark.parametrize("t_flare", [85.89, 91.0])
+def test_a_crossing_one_second_from_a_turnaround_is_found(scan_end_dataset, t_flare):
+    from so_transients.results import proc_table
+
+    aman = load(scan_end_dataset)
+    table = proc_table(run_steps(aman, SEARCH), aman.obs_info.obs_id)
+    t0 = float(aman.timestamps[0])
+    found = table[np.asarray(table["detected"], bool)
+                  & (np.abs(table["t_peak"] - (t0 + t_flare)) < 0.5)]
+    assert len(found) == 1
+    assert found[0]["snr_fit"] > 10
 
 
 @pytest.fixture(scope="module")

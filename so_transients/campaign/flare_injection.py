@@ -22,22 +22,24 @@ from astropy.table import Table
 from ..bands import fwhm_to_sigma, get_band
 from ..noise_model import filtered_snr
 from ..matching import crossing_times
-from ..scan_geometry import boresight_mask, detector_pitch
+from ..scan_geometry import constant_velocity, detector_pitch
 from ..sim.config import FlareConfig
 from ..sim.sources import PointingContext, SourceCrossing, add_sources, draw_flares, source_crossings
 from .search_steps import stack
 
 
 def draw_cell_flares(cell, n, states, rng) -> Table:
-    """``n`` flares of ``cell`` at random peak times (constant-velocity scanning, away from the
-    ends) and positions (where a random detector of the band points then, plus up to half a
-    pixel pitch), for the observation of ``states`` (the band's groups, one obs)."""
+    """``n`` flares of ``cell`` at random peak times (anywhere in the constant-velocity part
+    of the sweeps, as in the paper's section 5.1, up to the turnarounds; away from the ends
+    of the observation) and positions (where a random detector of the band points then, plus
+    up to half a pixel pitch), for the observation of ``states`` (the band's groups, one obs)."""
     first = states[0]
     xi = np.concatenate([s.xi for s in states])
     eta = np.concatenate([s.eta for s in states])
     names = np.concatenate([np.asarray(s.aman.dets.vals) for s in states])
     t = first.timestamps
-    scanning = ~boresight_mask(first.aman.flags.turnarounds)
+    bore = first.aman.boresight
+    scanning = constant_velocity(first.timestamps, bore.az, bore.el)
     edge = min(5.0 + cell.t_rise, 0.4 * (t[-1] - t[0]))   # light curves inside the observation
     scanning &= (t > t[0] + edge) & (t < t[-1] - edge)
     ctx = PointingContext(t, first.bore_q, scanning, xi, eta, names, detector_pitch(xi, eta))

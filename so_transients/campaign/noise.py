@@ -17,7 +17,9 @@ need is then kept on disk, under ``<output>/noise/groups/<group>/``:
   true focal-plane position, sky response (gain) and time constant, from the simulation's
   truth, so that injected flares are seen as the TOD's sources are (:class:`Response`);
 * ``false_noise.ecsv`` / ``false_inverted.ecsv`` and ``false_positives.json`` (their counts):
-  the detections of the search steps run on the noise-only S/N and on its sign-inverted copy
+  the detections of the search steps run on the noise-only S/N and on its sign-inverted copy;
+  ``fitted_noise.ecsv`` / ``fitted_inverted.ecsv``: every candidate fitted there, at any
+  fitted S/N (the false-detection rate as a function of a raised threshold)
   (the site pipeline on -TOD: every standard step and the filter are odd in the data, so its
   S/N is exactly minus this one). :func:`search_false_positives` makes them from the files
   above, so a campaign runs it in a worker while the next group is being prepared.
@@ -37,12 +39,13 @@ from sotodlib import core
 from sotodlib.preprocess import Pipeline
 
 from .. import step_fields
-from ..fit import FitInputs, measure_error_scale
+from ..find import FindConfig
+from ..fit import FitConfig, FitInputs, measure_error_scale
 from ..noise_model import NoiseModel
 from ..pointing import BORE_Q, boresight_q
 from ..sim.imperfections import respond_to_sky
 from ..sim.simulate import planned_detsets, simulate
-from .search_steps import SEARCH_STEPS, SearchSteps, fit_config
+from .search_steps import SEARCH_STEPS, SearchSteps, step_settings
 
 log = logging.getLogger(__name__)
 KEEP_FIELDS = ("timestamps", "boresight", "focal_plane", "det_info", "obs_info", "flags",
@@ -121,8 +124,9 @@ def prepare_group(context, group: Group, standard_steps, search_steps, folder):
     duration = float(aman.timestamps[-1] - aman.timestamps[0])
     np.save(folder / "snr.npy", np.asarray(aman.transient_snr, np.float32))
     live = np.flatnonzero(~np.asarray(aman.transient_filter.dead, bool))
-    scale = measure_error_scale(FitInputs.from_aman(aman), live, np.zeros(0),
-                                fit_config(search_steps))
+    data = FitInputs.from_aman(aman, step_settings(search_steps, FindConfig).speed_tolerance)
+    scale = measure_error_scale(data, live, np.zeros(0),
+                                step_settings(search_steps, FitConfig))
     for name in [n for n in aman._fields if n not in KEEP_FIELDS]:
         aman.move(name, None)
     aman.save(str(folder / "state.h5"), overwrite=True)
@@ -144,9 +148,13 @@ def search_false_positives(group: Group, folder, search_steps, inverted=True, st
     aman = state.aman
     aman.wrap("transient_snr", np.array(state.snr), [(0, "dets"), (1, "samps")])   # a copy
     search = SearchSteps(search_steps, error_scale=state.error_scale)
-    noise = search.run(aman, group.obs_id)
+    fitted = {"noise": search.run(aman, group.obs_id, fitted=True)}
     aman.transient_snr[:] *= -1
-    flipped = search.run(aman, group.obs_id) if inverted else Table()
+    fitted["inverted"] = search.run(aman, group.obs_id, fitted=True) if inverted else Table()
+    for kind, table in fitted.items():
+        table.write(folder / f"fitted_{kind}.ecsv", overwrite=True)
+    noise, flipped = (t[np.asarray(t["detected"], bool)] if len(t) else t
+                      for t in fitted.values())
     noise.write(folder / "false_noise.ecsv", overwrite=True)
     flipped.write(folder / "false_inverted.ecsv", overwrite=True)
     counts = dict(n_false_noise=len(noise), n_false_inverted=len(flipped),
@@ -158,7 +166,7 @@ def search_false_positives(group: Group, folder, search_steps, inverted=True, st
 def false_positives_done(folder, inverted, stamp) -> bool:
     """Whether :func:`search_false_positives` finished in ``folder`` with these settings."""
     path = Path(folder) / "false_positives.json"
-    if not path.exists():
+    if not path.exists() or not (Path(folder) / "fitted_noise.ecsv").exists():
         return False
     done = json.loads(path.read_text())
     return done.get("stamp") == stamp and done.get("inverted") == bool(inverted)

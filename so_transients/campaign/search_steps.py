@@ -16,6 +16,7 @@ from sotodlib import core
 from sotodlib.preprocess import Pipeline
 
 from .. import candidates
+from ..find import FindConfig
 from ..fit import FitConfig
 from ..step_config import from_yaml
 
@@ -34,12 +35,14 @@ def split_pipe(process_pipe):
     return process_pipe[:cut], [s for s in process_pipe[cut:] if s["name"] in SEARCH_STEPS]
 
 
-def fit_config(search_steps) -> FitConfig:
-    """The ``transient_fit`` settings among the search steps' config entries."""
-    entry = next((s for s in search_steps if s["name"] == "transient_fit"), None)
+def step_settings(search_steps, config_class):
+    """The settings of the search step ``config_class`` configures (``FindConfig`` for
+    ``transient_find``, ``FitConfig`` for ``transient_fit``) among the steps' config entries."""
+    name = {FindConfig: "transient_find", FitConfig: "transient_fit"}[config_class]
+    entry = next((s for s in search_steps if s["name"] == name), None)
     if entry is None:
-        raise ValueError("the preprocess config has no transient_fit step")
-    return from_yaml(FitConfig, entry.get("calc"), "transient_fit")
+        raise ValueError(f"the preprocess config has no {name} step")
+    return from_yaml(config_class, entry.get("calc"), name)
 
 
 class SearchSteps:
@@ -58,10 +61,11 @@ class SearchSteps:
                                  "error_scale": float(error_scale)}
             self.steps.append(Pipeline.PIPELINE[entry["name"]](entry))
 
-    def run(self, aman, obs_id="") -> Table:
+    def run(self, aman, obs_id="", fitted=False) -> Table:
         """Run the steps on ``aman`` (which holds ``transient_snr`` and ``transient_filter``);
-        returns its detections. The steps' per-group INFO and WARNING lines are not shown: a
-        campaign's windows are seconds long by design, not short observations."""
+        returns its detections (``fitted``: every candidate fitted, with ``detected``). The
+        steps' per-group INFO and WARNING lines are not shown: a campaign's windows are
+        seconds long by design, not short observations."""
         proc_aman = core.AxisManager(aman.dets, aman.samps)
         steps_log = logging.getLogger("so_transients")
         level = steps_log.level
@@ -71,7 +75,7 @@ class SearchSteps:
                 step.calc_and_save(aman, proc_aman)
         finally:
             steps_log.setLevel(level)
-        return detections(aman, obs_id)
+        return detections(aman, obs_id, fitted)
 
 
 def stack(tables) -> Table:
@@ -79,14 +83,16 @@ def stack(tables) -> Table:
     return tables[0] if len(tables) == 1 else vstack(tables)
 
 
-def detections(aman, obs_id="") -> Table:
-    """Detected candidates of ``aman.transient_candidates`` as a table."""
+def detections(aman, obs_id="", fitted=False) -> Table:
+    """Detected candidates of ``aman.transient_candidates`` as a table; ``fitted``: every
+    candidate whose fit converged (at any S/N), with the ``detected`` column."""
     cands = aman.transient_candidates
-    keep = (np.flatnonzero(np.asarray(cands.detected, bool)) if "detected" in cands._fields
+    chosen = "fit_ok" if fitted else "detected"
+    keep = (np.flatnonzero(np.asarray(cands[chosen], bool)) if chosen in cands._fields
             else np.zeros(0, int))
     table = Table()
     table["obs_id"] = np.full(len(keep), obs_id)
-    for name in DETECTION_COLUMNS:
+    for name in DETECTION_COLUMNS + (("detected",) if fitted else ()):
         col = candidates.BY_NAME[name]
         values = np.asarray(cands[name])[keep] if name in cands._fields else np.zeros(0)
         table[name] = values.astype(str) if values.dtype.kind in "USO" else values

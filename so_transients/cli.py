@@ -9,6 +9,7 @@ Subcommands:
   CSV by suffix), with which groups are missing from the archive and why;
 * ``schema``: the candidate table's columns (name, step, unit, meaning) as Markdown;
 * ``campaign CONFIG``: an injection-recovery campaign (efficiency, thresholds, false positives);
+* ``campaign-combine RESULTS... -o OUT``: several campaigns' results (e.g. MF and UHF) as one;
 * ``demo``: the main job on built-in default data (``make demo``).
 """
 from __future__ import annotations
@@ -107,6 +108,14 @@ def _campaign(args):
     print(f"Campaign done in {time.time() - t0:.0f} s; results in {folder}")
 
 
+def _campaign_combine(args):
+    from .campaign.combine import combine_results
+
+    folder = combine_results(args.results, args.out)
+    print((folder / "summary.md").read_text())
+    print(f"Combined results in {folder}")
+
+
 def _common_options(default):
     """Options accepted before and after the subcommand (``default``: argparse.SUPPRESS in the
     subcommands, so that they do not reset a value given before the subcommand)."""
@@ -170,6 +179,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="discard units of a different config in the output folder")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_campaign)
+
+    p = add("campaign-combine", "one set of result tables and figures from several "
+                                "campaigns' results (e.g. an MF and a UHF campaign)")
+    p.add_argument("results", nargs="+", help="campaign results folders (<output>/results)")
+    p.add_argument("-o", "--out", required=True, help="output folder")
+    p.set_defaults(func=_campaign_combine)
 
     p = add("demo", "simulate the default observation, run the site pipeline "
                     "and compare detections with the injected flares")

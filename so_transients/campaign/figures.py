@@ -20,9 +20,12 @@ from .stats import LEVELS  # noqa: E402
 
 
 def _panels(bands):
+    """One panel per band, in one row (two rows of two for four bands, like the paper's)."""
     n = max(len(bands), 1)
-    fig, axes = plt.subplots(1, n, figsize=(5.2 * n, 4.2), squeeze=False)
-    return fig, axes[0]
+    rows = 2 if n == 4 else 1
+    cols = n // rows
+    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 4.2 * rows), squeeze=False)
+    return fig, axes.ravel()
 
 
 def _by_rise(rows):
@@ -39,8 +42,11 @@ def _save(fig, path):
     plt.close(fig)
 
 
-def plot_efficiency(path, eff, noise_rms):
+def plot_efficiency(path, eff):
+    """Efficiency curves per band; the band's TOD rms (``eff["tod_rms"]``) marked."""
     bands = sorted(set(eff["band"]))
+    noise_rms = ({str(b): float(r) for b, r in zip(eff["band"], eff["tod_rms"])}
+                 if "tod_rms" in eff.colnames else {})
     fig, axes = _panels(bands)
     for ax, band in zip(axes, bands):
         for _, t_rise, color, row in _by_rise(eff[eff["band"] == band]):
@@ -95,7 +101,7 @@ def plot_pointing(path, residuals):
     _save(fig, path)
 
 
-def write_figures(folder, eff, residuals, noise_rms):
-    plot_efficiency(folder / "efficiency.png", eff, noise_rms)
+def write_figures(folder, eff, residuals):
+    plot_efficiency(folder / "efficiency.png", eff)
     plot_flux_residuals(folder / "flux_residuals.png", residuals)
     plot_pointing(folder / "pointing.png", residuals)

@@ -55,13 +55,14 @@ def flare_list(flares, t0):
                  t_rise=float(f["t_rise"]), t_decay=float(f["t_decay"])) for f in flares]
 
 
-def full_pipeline(cfg, folder: Path, flares, t0, progress):
-    """Simulate the flares into the noise-only observation and run the site pipeline; returns
-    (truth flares, per-flare detected by the full path)."""
+def full_pipeline(cfg, folder: Path, flares, t0, detsets, progress):
+    """Simulate the flares into the noise-only observation (its ``detsets`` only: the data
+    are those of the whole simulation) and run the site pipeline; returns (truth flares,
+    per-flare detected by the full path)."""
     sim = {"seed": cfg.seed, **cfg.simulation}
     sim["flares"] = {"list": flare_list(flares, t0)}
     result = simulate(SimConfig.from_dict(sim), output=folder / "sim", overwrite=True,
-                      progress=progress, workers=cfg.nproc)
+                      progress=progress, workers=cfg.nproc, detsets=detsets)
     dataset = result.context.parent
     config = write_site_config(dataset, template=cfg.preprocess,
                                overrides=cfg.preprocess_overrides)
@@ -76,14 +77,15 @@ def full_pipeline(cfg, folder: Path, flares, t0, progress):
 
 def check_cell(cfg, out: Path, folders: dict, cell, progress=True) -> dict:
     folder = out / "full_check" / cell.label
-    obs_id = sorted({g.obs_id for g in folders})[0]
+    obs_id = sorted({g.obs_id for g in folders if g.band == cell.band})[0]
     _, search = cfg.pipeline_steps()
-    states = [GroupState.load(g, f, search) for g, f in folders.items()
-              if g.obs_id == obs_id and g.band == cell.band]
+    groups = [g for g in folders if g.obs_id == obs_id and g.band == cell.band]
+    states = [GroupState.load(g, folders[g], search) for g in groups]
     rng = rng_for(cfg.seed, "full_check", cell.label)
     flares = spaced_flares(cell, cfg.full_check.n_flares, states, rng,
                            cfg.full_check.separation)
-    truth, full = full_pipeline(cfg, folder, flares, states[0].timestamps[0], progress)
+    truth, full = full_pipeline(cfg, folder, flares, states[0].timestamps[0],
+                                sorted({f"{g.wafer}_{g.band}" for g in groups}), progress)
     mine = np.asarray(truth["band"]) == cell.band
     truth, full = truth[mine], full[mine]
     fast, _ = search_flares(states, truth, cfg.injection, cfg.matching.max_dt,

@@ -1,8 +1,12 @@
 """The campaign's result tables, next to the reference paper's Table 2.
 
 Written to the results folder: ``efficiency.ecsv``, ``thresholds.ecsv``, ``thresholds.md``,
-``flux_residuals.ecsv``, ``pointing.ecsv``, ``false_positives.ecsv`` (and ``full_check.ecsv``
-when the full-pipeline comparison ran), plus the figures of :mod:`.figures`. Units: mJy for
+``flux_residuals.ecsv`` and its per-t_r ``flux_summary.ecsv``, ``pointing.ecsv``,
+``false_positives.ecsv``, ``fitted_noise.ecsv`` (every candidate fitted on the noise-only data),
+``equal_rate.ecsv`` with ``efficiency_equal_rate.ecsv`` and ``thresholds_equal_rate.ecsv``
+(:mod:`.equal_rate`), ``full_check.ecsv`` when the full-pipeline comparison ran, ``summary.md``
+(:mod:`.markdown`: everything above as the README shows it), plus the figures of
+:mod:`.figures`. Units: mJy for
 fluxes, s for times, arcsec for pointing offsets, detections per hour for rates.
 """
 from __future__ import annotations
@@ -11,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 from astropy import units as u
-from astropy.table import Table
+from astropy.table import Table, vstack
 
 from ..angles import ARCSEC
 from ..bands import get_band
@@ -28,6 +32,10 @@ PAPER_TABLE2 = {
     "f280": {0.5: (1250, 1900, 4250), 5: (800, 1100, 1900), 30: (750, 1000, 1500),
              150: (700, 1000, 1600)},
 }
+
+
+#: Clancy et al. 2025, section 5.2: median offset of the fitted positions (arcsec) per band.
+PAPER_POINTING_ARCSEC = {"f090": 14.6, "f150": 7.0, "f220": 9.4, "f280": 9.1}
 
 
 def efficiency_table(flares: Table) -> Table:
@@ -114,18 +122,46 @@ def flux_residual_table(detections: Table) -> Table:
     return out
 
 
+def flux_summary_table(residuals: Table) -> Table:
+    """Per band and t_r: median and scatter (half the 16-84 % range) of the fractional flux
+    residuals of every matched detection (against the injected flux at its time), and the
+    median against S_p of the detection nearest each flare's peak."""
+    rows = []
+    for band in sorted(set(residuals["bandpass"])) if len(residuals) else []:
+        mine = residuals[residuals["bandpass"] == band]
+        for t_rise in sorted(set(np.asarray(mine["t_rise"], float))):
+            cell = mine[np.asarray(mine["t_rise"], float) == t_rise]
+            r = np.asarray(cell["residual"], float)
+            r = r[np.isfinite(r)]
+            lo, med, hi = np.percentile(r, [15.87, 50, 84.13]) if len(r) else (np.nan,) * 3
+            near = np.asarray(cell["peak_residual"], float)[np.asarray(cell["nearest_peak"], bool)]
+            rows.append((band, t_rise, len(r), med, (hi - lo) / 2,
+                         float(np.median(near)) if len(near) else np.nan))
+    table = Table(rows=rows or None, names=("band", "t_rise", "n", "median", "scatter",
+                                            "peak_median"),
+                  dtype=("U8", float, int, float, float, float))
+    table["t_rise"].unit = u.s
+    table["median"].description = "median (fitted - injected at that time) / injected"
+    table["scatter"].description = "half the 16-84 % range of the same"
+    table["peak_median"].description = "median (fitted - S_p) / S_p, detection nearest the peak"
+    return table
+
+
 def pointing_table(detections: Table) -> Table:
-    """Median and 68th percentile of fitted-position offsets per band, also / FWHM."""
+    """Median and 68th percentile of fitted-position offsets per band, also / FWHM, next to
+    the paper's median."""
     rows = []
     for band in sorted(set(detections["bandpass"])) if len(detections) else []:
         off = np.asarray(detections["offset"][detections["bandpass"] == band], float) / ARCSEC
         fwhm = get_band(band).fwhm / ARCSEC
         med, p68 = np.median(off), np.percentile(off, 68.27)
-        rows.append((band, len(off), med, p68, fwhm, med / fwhm, p68 / fwhm))
+        rows.append((band, len(off), med, p68, fwhm, med / fwhm, p68 / fwhm,
+                     PAPER_POINTING_ARCSEC.get(band, np.nan)))
     table = Table(rows=rows or None, names=("band", "n", "median", "p68", "fwhm",
-                                            "median_over_fwhm", "p68_over_fwhm"),
-                  dtype=("U8", int, float, float, float, float, float))
-    for name in ("median", "p68", "fwhm"):
+                                            "median_over_fwhm", "p68_over_fwhm",
+                                            "paper_median"),
+                  dtype=("U8", int, float, float, float, float, float, float))
+    for name in ("median", "p68", "fwhm", "paper_median"):
         table[name].unit = u.arcsec
     return table
 
@@ -184,25 +220,66 @@ def noise_rms(folders: dict) -> dict:
     return {band: float(np.median(v)) for band, v in values.items()}
 
 
+def fitted_noise_table(folders: dict) -> Table:
+    """Every candidate fitted on the noise-only data of the groups (``fitted_noise.ecsv``),
+    with its band: the false-detection rate at any raised threshold."""
+    parts = []
+    for group, folder in folders.items():
+        path = Path(folder) / "fitted_noise.ecsv"
+        table = Table.read(path) if path.exists() else Table()
+        if len(table):
+            parts.append(Table({"band": np.full(len(table), group.band),
+                                "wafer_slot": np.full(len(table), group.wafer),
+                                "snr_fit": np.asarray(table["snr_fit"], float)}))
+    return (vstack(parts) if parts else
+            Table(names=("band", "wafer_slot", "snr_fit"), dtype=("U8", "U8", float)))
+
+
 def write_results(cfg, folder, flares, detections, folders, check=None) -> Path:
-    """Write every table and figure; returns ``folder``."""
+    """Write every table and figure of one campaign; returns ``folder``."""
+    eff = efficiency_table(flares)
+    rms = noise_rms(folders)
+    eff["tod_rms"] = [rms.get(b, np.nan) for b in eff["band"]]
+    eff["tod_rms"].unit = u.mJy
+    eff["tod_rms"].description = "median per-sample white noise of the band's detectors"
+    tables = dict(flares=flares, efficiency=eff,
+                  flux_residuals=flux_residual_table(detections),
+                  false_positives=false_positive_table(folders),
+                  fitted_noise=fitted_noise_table(folders), full_check=check)
+    return write_tables(folder, tables, {"config_digest": cfg.digest()}, cfg.seed)
+
+
+#: What :func:`write_tables` is given (and :mod:`.combine` reads back), besides what it derives.
+INPUT_TABLES = ("flares", "efficiency", "flux_residuals", "false_positives", "fitted_noise",
+                "full_check")
+
+
+def write_tables(folder, tables: dict, meta: dict, seed=0) -> Path:
+    """Derive thresholds, flux, pointing and equal-rate tables from ``tables`` (the
+    :data:`INPUT_TABLES`) and write them all, with ``summary.md`` and the figures."""
+    from .equal_rate import efficiency_at, equal_rate_thresholds
     from .figures import write_figures
+    from .markdown import summary_markdown
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    eff = efficiency_table(flares)
-    limits = threshold_table(eff, cfg.seed)
-    residuals = flux_residual_table(detections)
-    pointing = pointing_table(detections)
-    false = false_positive_table(folders)
-    meta = {"config_digest": cfg.digest()}
-    for name, table in (("efficiency", eff), ("thresholds", limits),
-                        ("flux_residuals", residuals), ("pointing", pointing),
-                        ("false_positives", false), ("full_check", check)):
+    out = dict(tables)
+    eff, residuals, false = out["efficiency"], out["flux_residuals"], out["false_positives"]
+    out["thresholds"] = threshold_table(eff, seed)
+    out["flux_summary"] = flux_summary_table(residuals)
+    out["pointing"] = pointing_table(residuals)
+    fitted = out["fitted_noise"]
+    hours = {str(r["band"]): float(r["wafer_hours"]) for r in false}
+    out["equal_rate"] = equal_rate_thresholds(
+        {b: np.asarray(fitted["snr_fit"][fitted["band"] == b]) for b in hours}, hours, seed=seed)
+    cut = {str(r["band"]): float(r["snr_threshold"]) for r in out["equal_rate"]}
+    out["efficiency_equal_rate"] = efficiency_at(out["flares"], residuals, cut)
+    out["thresholds_equal_rate"] = threshold_table(out["efficiency_equal_rate"], seed)
+    for name, table in out.items():
         if table is not None:
             table.meta.update(meta)
             table.write(folder / f"{name}.ecsv", overwrite=True)
-    (folder / "thresholds.md").write_text(thresholds_markdown(limits, eff))
-    flares.write(folder / "flares.ecsv", overwrite=True)
-    write_figures(folder, eff, residuals, noise_rms(folders))
+    (folder / "thresholds.md").write_text(thresholds_markdown(out["thresholds"], eff))
+    (folder / "summary.md").write_text(summary_markdown(out))
+    write_figures(folder, eff, residuals)
     return folder

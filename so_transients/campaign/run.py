@@ -113,8 +113,9 @@ def unit_specs(cfg, out: Path, folders: dict) -> list:
     _, search = cfg.pipeline_steps()
     digest = cfg.digest()
     specs = []
-    obs_ids = sorted({g.obs_id for g in folders})
     for cell in cfg.cells:
+        # the observations holding this band (each tube has its own obs_id)
+        obs_ids = sorted({g.obs_id for g in folders if g.band == cell.band})
         first = 0
         for obs_id, n in zip(obs_ids, split_flares(cfg.n_flares, len(obs_ids))):
             groups = [((g.obs_id, g.wafer, g.band), str(f)) for g, f in folders.items()

@@ -94,7 +94,11 @@ SCHEMA = (
                                         "scans (a planet, asteroid or satellite)"),
     Column("motion_rate", "float", "arcmin / min", _T, "rate of that motion (NaN: the fit "
                                                        "was not significant or stood alone)"),
-    Column("detected", "bool", None, _T, "fit_ok, snr_fit >= min_snr and not moving"),
+    Column("pass_peak_ratio", "bool", None, _T, "snr_max <= max_peak_ratio x snr_fit (a "
+                                                 "glitch residue's one detector is far brighter "
+                                                 "than the fitted source could make it)"),
+    Column("detected", "bool", None, _T, "fit_ok, snr_fit >= min_snr, pass_peak_ratio and not "
+                                          "moving"),
 )
 BY_NAME = {c.name: c for c in SCHEMA}
 

@@ -60,6 +60,7 @@ class FitConfig:
     max_motion_arcmin_per_min: float = 5.0   # detections this far apart per time are linked
     min_motion_arcmin_per_min: float = 0.1   # a linked set moving faster is a moving source
     motion_floor_arcsec: float = 10.0        # position error floor for the motion test
+    max_peak_ratio: float | None = None      # not detected: snr_max > this x snr_fit (None: off)
 
     def __post_init__(self):
         positive("transient_fit", window=self.window, radius_deg=self.radius_deg,
@@ -67,7 +68,8 @@ class FitConfig:
                  n_null=self.n_null, error_scale=self.error_scale,
                  max_motion_arcmin_per_min=self.max_motion_arcmin_per_min,
                  min_motion_arcmin_per_min=self.min_motion_arcmin_per_min,
-                 motion_floor_arcsec=self.motion_floor_arcsec)
+                 motion_floor_arcsec=self.motion_floor_arcsec,
+                 max_peak_ratio=self.max_peak_ratio)
 
     @property
     def radius(self):
@@ -483,8 +485,21 @@ def fit_group_candidates(data: FitInputs, cands, det_bands, cfg: FitConfig):
     out["dec"] = np.where(fitted, out["dec"], cands["cluster_dec"])
     significant = fitted & (np.nan_to_num(out["snr_fit"]) >= cfg.min_snr)
     out["moving"], out["motion_rate"] = _motion(cands, out, significant, cfg)
-    out["detected"] = significant & ~out["moving"]
+    out["pass_peak_ratio"] = peak_ratio_ok(cands["snr_max"], out["snr_fit"], cfg.max_peak_ratio)
+    out["detected"] = significant & ~out["moving"] & out["pass_peak_ratio"]
     return candidates.check(out, "transient_fit")
+
+
+def peak_ratio_ok(snr_max, snr_fit, max_ratio):
+    """Whether each candidate's brightest detector (``snr_max``) is within ``max_ratio`` times
+    its fitted S/N (all True when ``max_ratio`` is None). A source bright enough to give one
+    detector S/N 40 is fitted far above S/N 40 / max_ratio over the dozens of detectors that
+    cross it (injected flares: snr_max / snr_fit < 1.5); a glitch residue, one detector hit
+    hard beside a faint noise cluster, is not."""
+    snr_max = np.asarray(snr_max, float)
+    if max_ratio is None:
+        return np.ones(len(snr_max), bool)
+    return ~(snr_max > max_ratio * np.nan_to_num(np.asarray(snr_fit, float), nan=np.inf))
 
 
 def _motion(cands, out, significant, cfg: FitConfig):

@@ -424,6 +424,7 @@ class TransientFit(_Preprocess):
           max_motion_arcmin_per_min: 5.0  # detections linked across scans up to this rate
           min_motion_arcmin_per_min: 0.1  # linked ones moving faster: a moving source
           motion_floor_arcsec: 10.0       # position error floor of the motion test
+          max_peak_ratio: null            # 3: not detected when snr_max > 3 x snr_fit
         save: true
         plot: true
     """

@@ -161,3 +161,12 @@ def test_false_positive_rates_are_per_wafer_band_hour():
     assert f090["rate_inverted_per_wbh"] == pytest.approx(3.0)
     f150 = table[table["band"] == "f150"][0]
     assert f150["rate_noise_per_wbh"] == 0 and f150["rate_noise_per_wbh_err"] == pytest.approx(3.0)
+
+
+def test_the_full_check_runs_as_many_site_processes_as_memory_holds():
+    from so_transients.campaign.full_check import site_processes
+
+    hour_mf = 860 * 792_000 * 4                      # one hour-long MF group's signal, bytes
+    assert site_processes(2, hour_mf, available=20 << 30) == 1
+    assert site_processes(2, hour_mf // 6, available=20 << 30) == 2   # ten minutes
+    assert site_processes(2, hour_mf, available=1 << 30) == 1         # never below one

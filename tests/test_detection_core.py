@@ -197,6 +197,23 @@ def test_fit_errors_match_the_scatter_of_repeated_noise_fits():
     assert 0.6 < scale < 1.4        # independent noise: the measured scale is ~1 (MAD of 40)
 
 
+def test_a_glitch_residue_fails_the_peak_ratio_and_a_bright_source_passes():
+    """A source crossing 60 detectors at S/N 4 each is fitted at S/N ~ 4 sqrt(60) / 1.3 ~ 24
+    (a ratio of 0.17); a glitch hitting one detector at S/N 40 beside a noise cluster
+    fitted at S/N 5.5 has a ratio of 7."""
+    from so_transients.fit import beam_shape, peak_ratio_ok
+
+    track, _ = _gaussian_track()
+    det_xi = np.repeat(np.arange(-10, 11) * PITCH, 3)
+    det_eta = np.tile([-PITCH, 0.0, PITCH], 21) * 0.87
+    amp = 400.0 * beam_shape(track, det_xi, det_eta)
+    res = fit_candidate(track, det_xi, det_eta, amp, np.full(len(det_xi), 100.0),
+                        inflation=1.3)
+    ok = peak_ratio_ok([amp.max() / 100.0, 40.0, 40.0], [res["snr_fit"], 5.5, np.nan], 3.0)
+    assert list(ok) == [True, False, True]             # an unfitted candidate is not judged
+    assert peak_ratio_ok([40.0], [5.5], None).all()    # off by default
+
+
 # ------------------------------------------------------------------------------ storage
 
 def test_catalogue_slots_survive_concatenation_of_groups():

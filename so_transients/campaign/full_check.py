@@ -16,6 +16,7 @@ the two paths agree, and z = (full - fast) / combined binomial error.
 """
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -55,7 +56,28 @@ def flare_list(flares, t0):
                  t_rise=float(f["t_rise"]), t_decay=float(f["t_decay"])) for f in flares]
 
 
-def full_pipeline(cfg, folder: Path, flares, t0, detsets, progress):
+def site_processes(nproc, group_bytes, available=None) -> int:
+    """Site-pipeline processes that fit in memory: each holds one group (about five copies
+    of its signal: the TOD, the low-passed copy for PCA, the filter's work and its S/N), so
+    at most ``MemAvailable / (5 x group_bytes)`` of them, between 1 and ``nproc``. Two
+    processes on hour-long MF groups (2.7 GB of signal each) exhaust 24 GB."""
+    if available is None:
+        available = _mem_available()
+    return int(max(1, min(nproc, available // max(5 * group_bytes, 1))))
+
+
+def _mem_available() -> int:
+    """Bytes of memory available now (``/proc/meminfo``), or a large number where unknown."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 1 << 62
+
+
+def full_pipeline(cfg, folder: Path, flares, t0, detsets, progress, group_bytes=0):
     """Simulate the flares into the noise-only observation (its ``detsets`` only: the data
     are those of the whole simulation) and run the site pipeline; returns (truth flares,
     per-flare detected by the full path)."""
@@ -66,11 +88,13 @@ def full_pipeline(cfg, folder: Path, flares, t0, detsets, progress):
     dataset = result.context.parent
     config = write_site_config(dataset, template=cfg.preprocess,
                                overrides=cfg.preprocess_overrides)
-    run_site_pipeline(config, nproc=cfg.nproc, extra_args=["--overwrite"])
+    run_site_pipeline(config, nproc=site_processes(cfg.nproc, group_bytes),
+                      extra_args=["--overwrite"])
     errors = failed_groups(config)
     if errors:
         raise RuntimeError(f"full check: the site pipeline failed on some groups:\n{errors}")
     matched, truth, _ = compare_with_truth(dataset, archive_table(config))
+    shutil.rmtree(dataset / "tod", ignore_errors=True)   # GBs; the archive and truth stay
     found = {(int(m["source_id"]), str(m["bandpass"])) for m in matched if m["source_id"] >= 0}
     return truth, np.array([(int(f["source_id"]), str(f["band"])) in found for f in truth])
 
@@ -85,7 +109,8 @@ def check_cell(cfg, out: Path, folders: dict, cell, progress=True) -> dict:
     flares = spaced_flares(cell, cfg.full_check.n_flares, states, rng,
                            cfg.full_check.separation)
     truth, full = full_pipeline(cfg, folder, flares, states[0].timestamps[0],
-                                sorted({f"{g.wafer}_{g.band}" for g in groups}), progress)
+                                sorted({f"{g.wafer}_{g.band}" for g in groups}), progress,
+                                max(4 * s.snr.size for s in states))
     mine = np.asarray(truth["band"]) == cell.band
     truth, full = truth[mine], full[mine]
     fast, _ = search_flares(states, truth, cfg.injection, cfg.matching.max_dt,

@@ -3,7 +3,8 @@
 ``<output>/`` holds::
 
     campaign.json        the config and its digest; a different config is refused
-    noise/sim/<g>/       the noise-only dataset of each group (a sotodlib context)
+    noise/sim/<g>/       the noise-only dataset of each group (a sotodlib context), deleted
+                         once the group is prepared
     noise/groups/<g>/    each prepared group (see :mod:`so_transients.campaign.noise`)
     units/               one pair of ECSV files per (cell, observation) work unit
     results/             the tables, Markdown and figures (:mod:`.report`, :mod:`.figures`)
@@ -17,7 +18,6 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
-import functools
 import json
 import logging
 import multiprocessing
@@ -71,15 +71,16 @@ def prepare_noise(cfg, out: Path, progress=True, pool=None):
     stamp = cfg.noise_digest()
     groups = campaign_groups(cfg)
     folders = {g: out / "noise" / "groups" / g.label for g in groups}
-    contexts = _simulate_ahead(cfg, out, [g for g in groups if not _prepared(folders[g], stamp)],
-                               pool)
+    sims = NoiseSimulations(cfg, out, [g for g in groups if not _prepared(folders[g], stamp)],
+                            pool)
     futures = []
     for group in tqdm(groups, desc="noise-only groups", disable=not progress):
         folder = folders[group]
-        if group in contexts:
+        if group in sims:
             (folder / "digest.txt").unlink(missing_ok=True)
-            prepare_group(contexts[group](), group, standard, search, folder)
+            prepare_group(sims.context(group), group, standard, search, folder)
             (folder / "digest.txt").write_text(stamp)
+            sims.discard(group)
         if not false_positives_done(folder, cfg.inverted, stamp):
             args = (group, str(folder), search, cfg.inverted, stamp)
             if pool is None:
@@ -94,13 +95,40 @@ def _prepared(folder: Path, stamp) -> bool:
     return (folder / "info.json").exists() and digest.exists() and digest.read_text() == stamp
 
 
-def _simulate_ahead(cfg, out: Path, groups, pool) -> dict:
-    """``{group: callable returning its context.yaml}``: the simulations are submitted to
-    ``pool`` now, or run when called without one."""
-    args = {g: (cfg.sim, out / "noise" / "sim" / g.label, g, cfg.sim_digest()) for g in groups}
-    if pool is None:
-        return {g: functools.partial(simulate_group, *a) for g, a in args.items()}
-    return {g: pool.submit(simulate_group, *a).result for g, a in args.items()}
+class NoiseSimulations:
+    """The noise-only TODs of ``groups``, simulated in order, each in ``pool`` (when given)
+    while the previous group is being prepared, at most ``cfg.nproc`` ahead: a group's TOD
+    (2.6 GB per wafer-band-hour at MF, 4 GB at UHF) is deleted by :meth:`discard` once its
+    group is prepared, so the disk holds only those in flight."""
+
+    def __init__(self, cfg, out: Path, groups, pool=None):
+        self.cfg, self.out, self.pool = cfg, out, pool
+        self.order = list(groups)
+        self.futures = {}
+
+    def __contains__(self, group):
+        return group in self.order
+
+    def _args(self, group):
+        return (self.cfg.sim, self.folder(group), group, self.cfg.sim_digest())
+
+    def folder(self, group) -> Path:
+        return self.out / "noise" / "sim" / group.label
+
+    def context(self, group) -> str:
+        """The group's context.yaml, once simulated; the next groups are submitted now."""
+        if self.pool is None:
+            return simulate_group(*self._args(group))
+        k = self.order.index(group)
+        for ahead in self.order[k:k + 1 + max(self.cfg.nproc, 1)]:
+            if ahead not in self.futures:
+                self.futures[ahead] = self.pool.submit(simulate_group, *self._args(ahead))
+        return self.futures.pop(group).result()
+
+    def discard(self, group):
+        """Delete the group's simulated TOD (its prepared folder holds all a campaign needs;
+        preprocessing it again simulates it again)."""
+        shutil.rmtree(self.folder(group), ignore_errors=True)
 
 
 def split_flares(n, n_obs):

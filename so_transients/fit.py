@@ -494,8 +494,9 @@ def peak_ratio_ok(snr_max, snr_fit, max_ratio):
     """Whether each candidate's brightest detector (``snr_max``) is within ``max_ratio`` times
     its fitted S/N (all True when ``max_ratio`` is None). A source bright enough to give one
     detector S/N 40 is fitted far above S/N 40 / max_ratio over the dozens of detectors that
-    cross it (injected flares: snr_max / snr_fit < 1.5); a glitch residue, one detector hit
-    hard beside a faint noise cluster, is not."""
+    cross it (injected flares: snr_max / snr_fit below 1.22 for 99.9 % of 39,241 detections,
+    one above 3); a glitch residue, one detector hit hard beside a faint noise cluster, is
+    not."""
     snr_max = np.asarray(snr_max, float)
     if max_ratio is None:
         return np.ones(len(snr_max), bool)

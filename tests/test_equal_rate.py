@@ -29,9 +29,13 @@ def test_the_tail_model_finds_the_threshold_of_a_known_tail():
     assert model_count_above(5.0, snr, x0=4.0) == pytest.approx(measured, abs=4 * np.sqrt(measured))
 
 
-def test_too_few_noise_candidates_give_no_threshold():
+def test_too_few_noise_candidates_leave_the_cut_where_it_is():
     x, _, n_tail = tail_threshold([4.5, 5.5, 3.0, 2.0], 3.0, 0.08)
     assert np.isnan(x) and n_tail == 2
+    table = equal_rate_thresholds({"f220": [2.5, 3.2, 3.6]}, {"f220": 1.5}, n_boot=10)
+    assert table["snr_threshold"][0] == 5.0 and table["basis"][0].startswith("fewer than 5")
+    raised = equal_rate_thresholds({"f220": [2.5, 3.2, 6.5]}, {"f220": 1.5}, n_boot=10)
+    assert raised["snr_threshold"][0] == pytest.approx(6.51)   # above the one that passed
 
 
 def test_equal_rate_table_per_band_with_bootstrap_error():

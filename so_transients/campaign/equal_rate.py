@@ -61,11 +61,12 @@ def raised_threshold(snr, wafer_hours, target, x0=3.0, min_snr=5.0):
     """The threshold at the paper's rate: the tail model's, but never below the detection
     cut ``min_snr``, and above every measured noise candidate when more of them exceed the
     model's threshold than the target allows (outliers the Gaussian-like tail misses, such
-    as glitch residues, are then not hidden by the model)."""
+    as glitch residues, are then not hidden by the model). With too few candidates above
+    ``x0`` to model the tail, ``min_snr`` (or above the measured candidates passing it)."""
     x_model = tail_threshold(snr, wafer_hours, target, x0)[0]
-    if not np.isfinite(x_model):
-        return np.nan
-    x = max(x_model, min_snr)
+    # too few noise candidates to model the tail: none of them reaches far, so the cut stays
+    # where it is (raised above any measured one that passes it)
+    x = max(x_model, min_snr) if np.isfinite(x_model) else min_snr
     above = snr[snr >= x]
     if len(above) > target * wafer_hours:
         x = float(above.max()) + 0.01
@@ -88,15 +89,17 @@ def equal_rate_thresholds(fitted, wafer_hours, x0=3.0, min_snr=5.0, n_boot=200,
         x_model, scale, n0 = tail_threshold(snr, hours, target, x0)
         x = raised_threshold(snr, hours, target, x0, min_snr)
         boot = [raised_threshold(rng.choice(snr, len(snr)), hours, target, x0, min_snr)
-                for _ in range(n_boot)] if np.isfinite(x) else [np.nan]
-        rows.append((band, hours, target, len(snr), n0, scale, x_model, x,
+                for _ in range(n_boot)] if len(snr) else [x]
+        basis = "tail model" if np.isfinite(x_model) else f"fewer than 5 above {x0:g}"
+        rows.append((band, hours, target, len(snr), n0, scale, x_model, x, basis,
                      float(np.nanstd(boot)), int(np.sum(snr >= min_snr)),
                      model_count_above(min_snr, snr, x0)))
     table = Table(rows=rows or None,
                   names=("band", "wafer_hours", "target_per_wbh", "n_fitted", "n_tail",
-                         "tail_scale", "snr_model", "snr_threshold", "snr_threshold_err",
-                         "n_above_cut", "model_above_cut"),
-                  dtype=("U8", float, float, int, int, float, float, float, float, int, float))
+                         "tail_scale", "snr_model", "snr_threshold", "basis",
+                         "snr_threshold_err", "n_above_cut", "model_above_cut"),
+                  dtype=("U8", float, float, int, int, float, float, float, "U32", float, int,
+                         float))
     table["wafer_hours"].unit = u.hour
     table["target_per_wbh"].unit = 1 / u.hour
     table.meta.update(x0=x0, min_snr=min_snr)

@@ -84,6 +84,8 @@ def false_section(false, equal):
         band = str(r["band"])
         e = eq.get(band)
         at = _pm(e["snr_threshold"], e["snr_threshold_err"], "{:.2f}") if e else "—"
+        if e and e["basis"] != "tail model":
+            at += f" ({e['basis']}: the cut)"
         check = f"{e['n_above_cut']} / {_f(e['model_above_cut'], '{:.1f}')}" if e else "—"
         lines.append(f"| {band} | {r['wafer_hours']:.2f} | {r['n_noise']}: "
                      f"{r['rate_noise_per_wbh']:.2f} ± {r['rate_noise_per_wbh_err']:.2f} | "

@@ -184,19 +184,20 @@ def _add_candidate(cands, hits, members, scan, direction, dets, samps, values, r
     hits["cand"].extend([cid] * len(members))
 
 
-def searchable_scans(speed, nominal_speed, timestamps, az, cfg: FindConfig):
+def searchable_scans(at_speed, timestamps, az, cfg: FindConfig):
     """Scan index per sample (-1 where nothing is searched) and each scan's direction.
 
-    Searched: every sample whose on-sky ``speed`` is within ``cfg.speed_tolerance`` of
-    ``nominal_speed`` (the template's), which is the whole constant-velocity part of each
-    sweep up to its first and last sample; the turnarounds themselves, where the speed falls
-    towards zero, split the scans. ``cfg.turnaround_buffer`` seconds around the off-speed
-    samples may be left out as well (0 by default: the filter runs over the whole TOD, so
-    nothing rings at the scan ends; a larger value is for data whose turnarounds excite the
-    telescope). Turnaround flags of the standard steps are not used: their buffers (sotodlib's
-    ``t_buffer``) reach into the constant-velocity part, which would go unsearched.
+    Searched: every sample ``at_speed`` (scanning within ``cfg.speed_tolerance`` of the
+    template's speed: :func:`so_transients.scan_geometry.constant_velocity`), which is the
+    whole constant-velocity part of each sweep up to its first and last sample; the
+    turnarounds themselves, where the speed falls towards zero, split the scans.
+    ``cfg.turnaround_buffer`` seconds around the off-speed samples may be left out as well (0
+    by default: the filter runs over the whole TOD, so nothing rings at the scan ends; a
+    larger value is for data whose turnarounds excite the telescope). Turnaround flags of the
+    standard steps are not used: their buffers (sotodlib's ``t_buffer``) reach into the
+    constant-velocity part, which would go unsearched.
     """
-    skip = np.abs(np.asarray(speed) / nominal_speed - 1) > cfg.speed_tolerance
+    skip = ~np.asarray(at_speed, bool)
     n_buf = samples_in(timestamps, cfg.turnaround_buffer)
     if n_buf and skip.any():
         skip = ndimage.maximum_filter1d(skip.view(np.uint8), 2 * n_buf + 1).astype(bool)

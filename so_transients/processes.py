@@ -283,9 +283,9 @@ class TransientFind(_Preprocess):
         if not aman.dets.count:
             return np.full(aman.samps.count, -1), np.zeros(0, int)
         t, az, el = aman.timestamps, aman.boresight.az, aman.boresight.el
-        return searchable_scans(scan_geometry.sample_speed(t, az, el),
-                                scan_geometry.scan_speed(t, az, el, str(GroupName(aman))),
-                                t, az, self.cfg)
+        at_speed = scan_geometry.constant_velocity(t, az, el, self.cfg.speed_tolerance,
+                                                   str(GroupName(aman)))
+        return searchable_scans(at_speed, t, az, self.cfg)
 
     def calc_and_save(self, aman, proc_aman):
         require(aman, self.name)

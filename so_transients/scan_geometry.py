@@ -45,11 +45,11 @@ def scan_speed(timestamps, az, el, where=""):
     return float(np.median(moving))
 
 
-def constant_velocity(timestamps, az, el, tolerance=0.01):
-    """Samples where the boresight scans at its nominal on-sky speed (within ``tolerance``):
-    the constant-velocity part of every sweep, turnarounds excluded."""
+def constant_velocity(timestamps, az, el, tolerance=0.01, where=""):
+    """Samples where the boresight scans at its nominal on-sky speed (within ``tolerance``,
+    a fraction of it): the constant-velocity part of every sweep, turnarounds excluded."""
     speed = sample_speed(timestamps, az, el)
-    return np.abs(speed / scan_speed(timestamps, az, el) - 1) <= tolerance
+    return np.abs(speed / scan_speed(timestamps, az, el, where) - 1) <= tolerance
 
 
 def samples_in(timestamps, seconds) -> int:

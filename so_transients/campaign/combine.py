@@ -14,10 +14,6 @@ from astropy.table import Table, vstack
 from .report import INPUT_TABLES, write_tables
 
 
-def _band_column(name):
-    return "bandpass" if name == "flux_residuals" else "band"
-
-
 def read_results(folder) -> dict:
     """The input tables of one campaign's results folder (``full_check`` may be absent)."""
     folder = Path(folder)

@@ -33,28 +33,30 @@ from .stats import binomial_interval
 PAPER_RATE_PER_WBH = {"f090": 2 / 24, "f150": 2 / 24, "f220": 1 / 12, "f280": 1 / 12}
 
 
+def _tail_fit(snr, x0):
+    """``(n0, s^2)``: the number of candidates above ``x0`` and the tail's maximum-likelihood
+    scale (NaN below 5 candidates)."""
+    snr = np.asarray(snr, float)
+    tail = snr[np.isfinite(snr) & (snr > x0)]
+    s2 = np.mean(tail**2 - x0**2) / 2 if len(tail) >= 5 else np.nan
+    return len(tail), s2
+
+
 def tail_threshold(snr, wafer_hours, target, x0=3.0):
     """Fitted-S/N threshold where the modelled noise rate above it is ``target`` per
     wafer-band-hour, from the noise candidates' fitted S/N ``snr``; ``(threshold, s, n0)``
     with the tail's scale and the number above ``x0`` (NaN threshold below 5 candidates)."""
-    snr = np.asarray(snr, float)
-    tail = snr[np.isfinite(snr) & (snr > x0)]
-    if len(tail) < 5:
-        return np.nan, np.nan, len(tail)
-    s2 = np.mean(tail**2 - x0**2) / 2
-    expected = target * wafer_hours
-    x2 = x0**2 + 2 * s2 * np.log(max(len(tail) / expected, 1.0))
-    return float(np.sqrt(x2)), float(np.sqrt(s2)), len(tail)
+    n0, s2 = _tail_fit(snr, x0)
+    if not np.isfinite(s2):
+        return np.nan, np.nan, n0
+    x2 = x0**2 + 2 * s2 * np.log(max(n0 / (target * wafer_hours), 1.0))
+    return float(np.sqrt(x2)), float(np.sqrt(s2)), n0
 
 
 def model_count_above(x, snr, x0=3.0):
     """The tail model's expected number of candidates above ``x``."""
-    snr = np.asarray(snr, float)
-    tail = snr[np.isfinite(snr) & (snr > x0)]
-    if len(tail) < 5:
-        return np.nan
-    s2 = np.mean(tail**2 - x0**2) / 2
-    return float(len(tail) * np.exp(-(x**2 - x0**2) / (2 * s2)))
+    n0, s2 = _tail_fit(snr, x0)
+    return float(n0 * np.exp(-(x**2 - x0**2) / (2 * s2))) if np.isfinite(s2) else np.nan
 
 
 def raised_threshold(snr, wafer_hours, target, x0=3.0, min_snr=5.0):
@@ -63,6 +65,7 @@ def raised_threshold(snr, wafer_hours, target, x0=3.0, min_snr=5.0):
     model's threshold than the target allows (outliers the Gaussian-like tail misses, such
     as glitch residues, are then not hidden by the model). With too few candidates above
     ``x0`` to model the tail, ``min_snr`` (or above the measured candidates passing it)."""
+    snr = np.asarray(snr, float)
     x_model = tail_threshold(snr, wafer_hours, target, x0)[0]
     # too few noise candidates to model the tail: none of them reaches far, so the cut stays
     # where it is (raised above any measured one that passes it)

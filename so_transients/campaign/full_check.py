@@ -110,7 +110,7 @@ def check_cell(cfg, out: Path, folders: dict, cell, progress=True) -> dict:
                            cfg.full_check.separation)
     truth, full = full_pipeline(cfg, folder, flares, states[0].timestamps[0],
                                 sorted({f"{g.wafer}_{g.band}" for g in groups}), progress,
-                                max(4 * s.snr.size for s in states))
+                                max(s.snr.nbytes for s in states))
     mine = np.asarray(truth["band"]) == cell.band
     truth, full = truth[mine], full[mine]
     fast, _ = search_flares(states, truth, cfg.injection, cfg.matching.max_dt,

@@ -20,7 +20,8 @@ import yaml
 from astropy.table import Table
 
 from so_transients.campaign.config import load_campaign
-from so_transients.campaign.run import executor, run_campaign
+from so_transients.campaign.run import run_campaign
+from so_transients.parallel import executor
 
 ROOT = Path(__file__).resolve().parent.parent
 BASE = ROOT / "configs" / "campaign_quick_realistic.yaml"

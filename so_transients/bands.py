@@ -22,6 +22,10 @@ HARDWARE_BAND_KEY = {"f090": "LAT_f090", "f150": "LAT_f150", "f220": "LAT_f230",
 #: Per-sample white noise in point-source-calibrated mJy (paper, section 5.2).
 WHITE_NOISE_MJY = {"f090": 367.0, "f150": 353.0, "f220": 520.0, "f280": 988.0}
 
+#: Band centre frequencies (GHz) of the reference paper (its Table 1): spectral indices use
+#: these; lightcurvedb's integer ``frequency`` uses the band's name (90, 150, 220, 280).
+CENTER_GHZ = {"f090": 93.0, "f150": 145.0, "f220": 225.0, "f280": 280.0}
+
 #: The atmospheric knee the paper measured at f090 (Hz): the matched filter's default
 #: high-pass and the simulated atmosphere's knee in every band.
 PAPER_KNEE_HZ = 1.23

@@ -191,19 +191,26 @@ def from_aman(sub: core.AxisManager, axis_name) -> dict:
     return {k: np.asarray(sub[k]) for k in sub._fields if sub._assignments[k] == [axis_name]}
 
 
-def table(rows: dict, first=()) -> Table:
-    """An astropy Table of candidate ``rows``, every schema column present (missing ones
-    filled), each with its unit and description; ``first``: extra columns (e.g. ``obs_id``)
-    put before the schema's, with their values in ``rows``."""
+def typed_table(cols, rows: dict) -> Table:
+    """An astropy Table with every column of ``cols`` (missing ones filled with the column's
+    fill value), each with its dtype, unit and description."""
     n = len(next(iter(rows.values()))) if rows else 0
     out = Table()
-    for name in first:
-        out[name] = rows[name]
-    for col in columns(saved=True):
+    for col in cols:
         values = np.asarray(rows[col.name]) if col.name in rows else np.full(n, col.fill)
         out[col.name] = values.astype(col.dtype) if col.kind != "str" else values.astype(str)
         out[col.name].unit = col.unit
         out[col.name].description = col.description
+    return out
+
+
+def table(rows: dict, first=()) -> Table:
+    """An astropy Table of candidate ``rows``, every schema column present (missing ones
+    filled), each with its unit and description; ``first``: extra columns (e.g. ``obs_id``)
+    put before the schema's, with their values in ``rows``."""
+    out = typed_table(columns(saved=True), rows)
+    for k, name in enumerate(first):
+        out.add_column(rows[name], name=name, index=k)
     for name in [k for k in rows if k not in out.colnames and k not in BY_NAME]:
         out[name] = rows[name]
     return out

@@ -10,6 +10,8 @@ Subcommands:
 * ``schema``: the candidate table's columns (name, step, unit, meaning) as Markdown;
 * ``campaign CONFIG``: an injection-recovery campaign (efficiency, thresholds, false positives);
 * ``campaign-combine RESULTS... -o OUT``: several campaigns' results (e.g. MF and UHF) as one;
+* ``events CONFIG``: detections joined into events, forced-photometry light curves, fits
+  and figures (:mod:`so_transients.events.command`);
 * ``demo``: the main job on built-in default data (``make demo``).
 """
 from __future__ import annotations
@@ -91,7 +93,8 @@ def _demo(args):
 
 def _campaign(args):
     from .campaign.config import load_campaign
-    from .campaign.run import executor, run_campaign
+    from .campaign.run import run_campaign
+    from .parallel import executor
 
     cfg = load_campaign(args.config, {"output": args.out, "nproc": args.nproc})
     pool, as_completed = executor(cfg.nproc)
@@ -106,6 +109,12 @@ def _campaign(args):
             pool.shutdown()
     print((folder / "thresholds.md").read_text())
     print(f"Campaign done in {time.time() - t0:.0f} s; results in {folder}")
+
+
+def _events(args):
+    from .events.command import main
+
+    return main(args.config, args.out, args.nproc, args.strict, args.quiet)
 
 
 def _campaign_combine(args):
@@ -185,6 +194,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("results", nargs="+", help="campaign results folders (<output>/results)")
     p.add_argument("-o", "--out", required=True, help="output folder")
     p.set_defaults(func=_campaign_combine)
+
+    p = add("events", "detections joined into events, with forced-photometry light curves, "
+                      "light-curve fits, spectral indices and figures")
+    from .events.command import get_parser as events_parser
+    events_parser(p)
+    p.set_defaults(func=_events)
 
     p = add("demo", "simulate the default observation, run the site pipeline "
                     "and compare detections with the injected flares")

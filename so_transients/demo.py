@@ -5,7 +5,9 @@
 2. run ``python -m sotodlib.site_pipeline.preprocess_tod`` with
    ``configs/preprocess_transients.yaml`` pointed at it;
 3. read every group's detections from the archive, match them to the injected flares
-   (0.5 s, 0.5') and print both, with the per-detection plots' location.
+   (0.5 s, 0.5') and print both, with the per-detection plots' location;
+4. join the detections into events and measure their light curves by forced photometry
+   (``so-transients events``), into ``<dataset>/events``.
 """
 from __future__ import annotations
 
@@ -16,6 +18,8 @@ import numpy as np
 from astropy.table import Table
 from sotodlib import core
 
+from .events.command import run_events, summary
+from .events.config import load_events_config
 from .matching import compare_with_truth
 from .results import archive_table, write_table
 from .site import failed_groups, run_site_pipeline, write_site_config
@@ -50,7 +54,7 @@ def report(matched: Table, flares: Table, crossings: dict, t0: float) -> str:
 
 
 def run_demo(dataset: Path, nproc=2) -> str:
-    """Steps 2 and 3 on an existing simulated dataset; returns the printed report."""
+    """Steps 2 to 4 on an existing simulated dataset; returns the printed report."""
     dataset = Path(dataset)
     config = write_site_config(dataset)
     t0 = time.time()
@@ -67,4 +71,10 @@ def run_demo(dataset: Path, nproc=2) -> str:
             f"{dataset / 'preprocess'}\n" + report(matched, flares, crossings, start)
             + f"\nDetections table: {dataset / 'detections.ecsv'}; plots under "
               f"{dataset / 'preprocess' / 'plots'}")
-    return text
+    return text + "\n\nEvents (so-transients events):\n" + events_report(config, nproc)
+
+
+def events_report(config, nproc=2) -> str:
+    """Step 4: the events, light curves and figures of the site config's archive."""
+    cfg = load_events_config(config, {"nproc": nproc})
+    return summary(run_events(cfg), cfg.output)

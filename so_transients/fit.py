@@ -290,6 +290,34 @@ def fit_candidate(track: Track, det_xi, det_eta, amp, sigma_amp, inflation=1.0, 
     return out
 
 
+def fit_fixed_position(track: Track, det_xi, det_eta, amp, sigma_amp, inflation=1.0,
+                       error_scale=1.0):
+    """Forced photometry: ``A0 B + C`` fitted with the source held at the track (the model is
+    then linear in ``A0`` and ``C``: one weighted least-squares solve, no iteration). Returns
+    ``flux``, ``flux_err``, ``offset``, ``offset_err`` (mJy, errors scaled as
+    :func:`fit_candidate`'s), ``chi2_red``, ``n_fit_samples``, ``n_fit_dets`` and ``fit_ok``."""
+    beam, ok = _beam_samples(track, det_xi, det_eta, amp, sigma_amp)
+    out = dict(flux=np.nan, flux_err=np.nan, offset=np.nan, offset_err=np.nan,
+               chi2_red=np.nan, n_fit_samples=int(ok.sum()),
+               n_fit_dets=int(ok.any(axis=1).sum()), fit_ok=False)
+    if ok.sum() < 8:
+        return out
+    chi2_zero, alpha, beta = beam.normal_equations(np.zeros(4))
+    linear = [0, 3]                       # A0 and C; the position (1, 2) is held
+    matrix = alpha[np.ix_(linear, linear)]
+    try:
+        cov = np.linalg.inv(matrix)
+    except np.linalg.LinAlgError:
+        return out
+    (a0, c) = cov @ beta[linear]
+    chi2 = chi2_zero - float(beta[linear] @ cov @ beta[linear])
+    errors = np.sqrt(np.clip(np.diag(cov), 0, None)) * inflation * error_scale
+    out.update(flux=float(a0), flux_err=float(errors[0]), offset=float(c),
+               offset_err=float(errors[1]), chi2_red=float(chi2 / max(ok.sum() - 2, 1)),
+               fit_ok=bool(np.all(np.isfinite(errors)) and errors[0] > 0))
+    return out
+
+
 def _held(p, lower, upper, beta):
     """Parameters at a bound that the chi^2 gradient pushes outwards (``beta`` is minus half
     the gradient): they stay at the bound for the next step."""

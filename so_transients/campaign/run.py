@@ -16,17 +16,16 @@ finished units are kept, the rest is done. Units are dispatched through sotodlib
 """
 from __future__ import annotations
 
-import concurrent.futures
 import dataclasses
 import json
 import logging
-import multiprocessing
 import shutil
 from pathlib import Path
 
 from astropy.table import Table, vstack
 from tqdm.auto import tqdm
 
+from ..parallel import executor, run_all
 from .config import CampaignConfig, Cell
 from .full_check import run_full_check
 from .noise import (campaign_groups, false_positives_done, prepare_group,
@@ -159,39 +158,10 @@ def unit_specs(cfg, out: Path, folders: dict) -> list:
     return specs
 
 
-def executor(nproc):
-    """(executor, as_completed) from sotodlib's ``get_exec_env``; None for one process."""
-    if nproc <= 1:
-        return None, None
-    from sotodlib.utils.procs_pool import get_exec_env
-
-    try:
-        _, pool, as_completed = get_exec_env(nprocs=nproc)
-    except RuntimeError:   # the start method was already set in this process (a second run)
-        pool = concurrent.futures.ProcessPoolExecutor(
-            nproc, mp_context=multiprocessing.get_context("spawn"))
-        as_completed = concurrent.futures.as_completed
-    return pool, as_completed
-
-
 def run_units(specs, progress=True, pool=None, as_completed=None):
     """Run the work units, in ``pool`` if given (else here, one after the other); returns
     their summaries."""
-    bar = tqdm(total=len(specs), desc="injections", unit="unit", disable=not progress)
-    done = []
-    try:
-        if pool is None:
-            for spec in specs:
-                done.append(run_unit(spec))
-                bar.update()
-        else:
-            futures = [pool.submit(run_unit, spec) for spec in specs]
-            for future in as_completed(futures):
-                done.append(future.result())
-                bar.update()
-    finally:
-        bar.close()
-    return done
+    return run_all(run_unit, specs, "injections", progress, pool, as_completed)
 
 
 def collect(specs):

@@ -151,6 +151,7 @@ class FlareConfig:
     t_decay: Any = None                 # None: equal to t_rise
     eta_rise: float = 1.0
     eta_decay: float = 1.0
+    spectral_index: float = 0.0         # S ~ nu^alpha; s_peak_mjy is at 93 GHz (f090)
     list: list = field(default_factory=list)  # explicit flares, see configs/sim_default.yaml
 
     def __post_init__(self):

@@ -20,8 +20,13 @@ import numpy as np
 from astropy import units as u
 from astropy.table import Table
 
+from ..bands import CENTER_GHZ
 from ..lightcurve import active_window, flare_flux
 from ..pointing import angular_distance_xieta, radec_of_samples, source_near
+
+#: A flare's ``s_peak_mjy`` is its peak flux density at this frequency (f090's centre); each
+#: band's is ``s_peak (nu / REFERENCE_GHZ)^spectral_index`` at the band's centre frequency.
+REFERENCE_GHZ = CENTER_GHZ["f090"]
 
 #: Beam is evaluated out to this many sigma.
 BEAM_REACH_SIGMA = 6.0
@@ -29,7 +34,7 @@ BEAM_REACH_SIGMA = 6.0
 FLARE_COLUMNS = [("source_id", int, None), ("band", str, None), ("ra", float, u.rad),
                  ("dec", float, u.rad), ("t_peak", float, u.s), ("s_peak", float, u.mJy),
                  ("t_rise", float, u.s), ("t_decay", float, u.s), ("eta_rise", float, None),
-                 ("eta_decay", float, None)]
+                 ("eta_decay", float, None), ("spectral_index", float, None)]
 POINT_SOURCE_COLUMNS = [("source_id", int, None), ("band", str, None), ("ra", float, u.rad),
                         ("dec", float, u.rad), ("flux", float, u.mJy)]
 
@@ -112,7 +117,9 @@ def draw_flares(config, bands, ctx: PointingContext, rng) -> Table:
                          s_peak=float(entry["s_peak_mjy"]), t_rise=t_rise,
                          t_decay=float(entry.get("t_decay", t_rise)),
                          eta_rise=float(entry.get("eta_rise", config.eta_rise)),
-                         eta_decay=float(entry.get("eta_decay", config.eta_decay))))
+                         eta_decay=float(entry.get("eta_decay", config.eta_decay)),
+                         spectral_index=float(entry.get("spectral_index",
+                                                        config.spectral_index))))
     cv_samples = np.flatnonzero(ctx.cv_mask)
     for _ in range(config.n):
         samp = int(rng.choice(cv_samples))
@@ -122,11 +129,13 @@ def draw_flares(config, bands, ctx: PointingContext, rng) -> Table:
         rows.append(dict(ra=ra, dec=dec, t_peak=float(ctx.timestamps[samp]),
                          s_peak=float(_log_uniform(rng, config.s_peak_mjy, 1)[0]),
                          t_rise=t_rise, t_decay=t_decay,
-                         eta_rise=config.eta_rise, eta_decay=config.eta_decay))
+                         eta_rise=config.eta_rise, eta_decay=config.eta_decay,
+                         spectral_index=config.spectral_index))
     table = empty_table(FLARE_COLUMNS)
     for i, row in enumerate(rows):
         for band in bands:
-            table.add_row(dict(row, source_id=i, band=band))
+            scale = (CENTER_GHZ[band] / REFERENCE_GHZ) ** row["spectral_index"]
+            table.add_row(dict(row, source_id=i, band=band, s_peak=row["s_peak"] * scale))
     return table
 
 

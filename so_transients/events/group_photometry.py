@@ -1,0 +1,165 @@
+"""Forced photometry of every event in one group (one wafer in one band of an observation).
+
+A work unit of ``so-transients events``: the group is loaded from the preprocess archive with
+sotodlib's ``load_and_preprocess`` (``transient_filter``'s ``process()`` rebuilds the
+filtered data), each event's position is measured at every crossing of its time window
+(:mod:`so_transients.forced_photometry`), and the rows are written to one ECSV file (with the
+sky tracks of the detectors at each event's best crossing, for its figure, in an NPZ file
+beside it). A unit that finished is not run again while its inputs are unchanged; a unit
+that fails returns the error, naming the observation, the group and the archive.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import traceback
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from astropy.table import Table
+
+from .. import pointing
+from ..find import FindConfig, searchable_scans
+from ..fit import FitConfig, FitInputs, fit_window, measure_error_scale
+from ..forced_photometry import PhotometryConfig, group_crossings, measure_crossings
+from ..scan_geometry import constant_velocity
+
+#: Columns of a unit's ECSV file, beside the event id (all of the lightcurves table's that
+#: a group knows; the rest are added when the units are combined).
+UNIT_COLUMNS = ("event_id", "ctime", "scan", "flux", "flux_err", "snr", "upper_limit",
+                "offset", "n_fit_dets", "chi2_red")
+
+
+@dataclass
+class GroupJob:
+    """What one work unit needs: picklable, so it can go to a pool or an MPI rank."""
+
+    preprocess: str                  # the site config
+    obs_id: str
+    tags: dict                       # the group's det_info selection, e.g. wafer_slot, bandpass
+    events: list                     # dicts: event_id, ra, dec, t_lo, t_hi (rad, ctime)
+    error_scale: float | None        # the group's transient_fit error scale (None: measure)
+    fit: FitConfig = field(default_factory=FitConfig)
+    find: FindConfig = field(default_factory=FindConfig)
+    photometry: PhotometryConfig = field(default_factory=PhotometryConfig)
+    out: str = ""                    # ECSV path of the result
+    archive_stamp: str = ""          # the archive file's size and mtime: a rerun of the
+    #                                  site pipeline invalidates the result
+
+    @property
+    def name(self) -> str:
+        return f"{self.obs_id} {'/'.join(str(v) for v in self.tags.values())}"
+
+    def digest(self) -> str:
+        payload = {k: v for k, v in asdict(self).items() if k != "out"}
+        return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str)
+                              .encode()).hexdigest()[:16]
+
+
+def job_done(job: GroupJob) -> bool:
+    path = Path(job.out)
+    return path.is_file() and Table.read(path).meta.get("digest") == job.digest()
+
+
+def run_job(job: GroupJob) -> dict:
+    """Run one unit (or reuse its earlier result); returns ``{obs_id, group, path, error}``
+    with ``error`` '' when it worked, else the error type and message."""
+    status = dict(obs_id=job.obs_id, group="/".join(str(v) for v in job.tags.values()),
+                  path=job.out, error="")
+    if job_done(job):
+        return status
+    try:
+        table, tracks = measure_group(job)
+    except Exception as exc:          # recorded per unit; the other units go on
+        status["error"] = f"{type(exc).__name__}: {exc}"
+        status["traceback"] = traceback.format_exc()
+        return status
+    table.meta.update(digest=job.digest(), obs_id=job.obs_id, tags=dict(job.tags))
+    Path(job.out).parent.mkdir(parents=True, exist_ok=True)
+    table.write(job.out, format="ascii.ecsv", overwrite=True)
+    np.savez_compressed(tracks_path(job.out), **tracks)
+    return status
+
+
+def tracks_path(unit_path) -> Path:
+    return Path(unit_path).with_suffix(".tracks.npz")
+
+
+def load_group(job: GroupJob):
+    """The group's AxisManager as the site pipeline's ``process()`` steps leave it."""
+    from sotodlib.preprocess.preprocess_util import load_and_preprocess
+
+    where = f"{job.name} (archive of {job.preprocess})"
+    try:
+        loaded = load_and_preprocess(job.obs_id, job.preprocess, dets=dict(job.tags))
+    except Exception as exc:
+        raise RuntimeError(f"{where}: cannot load and preprocess: {exc}") from exc
+    if loaded is None or loaded[0] is None:
+        raise ValueError(f"{where}: no detector left after the archive's cuts")
+    aman = loaded[0]
+    if "transient_snr" not in aman._fields:
+        raise ValueError(f"{where}: transient_filter did not run (not in process_pipe?)")
+    return aman
+
+
+def module_of(aman) -> str:
+    """The group's optics tube (det_info tube_slot), '' when the metadata do not say."""
+    info = aman.det_info if "det_info" in aman._fields else None
+    if info is not None and "tube_slot" in info._fields and aman.dets.count:
+        return str(np.asarray(info.tube_slot)[0])
+    return ""
+
+
+def measure_group(job: GroupJob):
+    """``(table, tracks)``: the forced photometry of every event of ``job`` at every
+    crossing of the group, and for each event the detector tracks of its best crossing."""
+    aman = load_group(job)
+    data = FitInputs.from_aman(aman, speed_tolerance=job.find.speed_tolerance)
+    t, az, el = aman.timestamps, aman.boresight.az, aman.boresight.el
+    at_speed = constant_velocity(t, az, el, job.find.speed_tolerance, job.name)
+    scan, _ = searchable_scans(at_speed, t, az, job.find)
+    bands = np.asarray(aman.transient_filter.bandpass).astype(str)
+    wafers = (np.asarray(aman.det_info.wafer_slot).astype(str)
+              if "wafer_slot" in aman.det_info._fields else np.full(aman.dets.count, ""))
+    rows, tracks = [], {}
+    for band in np.unique(bands):
+        band_dets = np.flatnonzero(bands == band)
+        scale = job.error_scale or measure_error_scale(data, band_dets, [], job.fit)
+        reach = 3 * float(np.median(data.beam_sigma[band_dets]))
+        for ev in job.events:
+            times, scans = group_crossings(data, scan, ev["ra"], ev["dec"], ev["t_lo"],
+                                           ev["t_hi"], band_dets, reach)
+            res = measure_crossings(data, ev["ra"], ev["dec"], times, band_dets, scale,
+                                    job.fit, job.photometry)
+            keep = res.pop("keep")
+            if not keep.any():
+                continue
+            n = int(keep.sum())
+            rows.append(dict(res, event_id=np.full(n, ev["event_id"]), ctime=times[keep],
+                             scan=scans[keep], bandpass=np.full(n, band),
+                             wafer_slot=np.full(n, wafers[band_dets[0]])))
+            best = times[keep][np.argmax(res["snr"])]
+            tracks[f"{ev['event_id']}_{band}"] = detector_tracks(data, ev["ra"], ev["dec"],
+                                                                 best, band_dets, job.fit)
+    table = Table({k: np.concatenate([r[k] for r in rows]) for k in rows[0]}) if rows \
+        else Table({k: np.zeros(0) for k in UNIT_COLUMNS + ("bandpass", "wafer_slot")})
+    table["obs_id"] = np.full(len(table), job.obs_id)
+    table["module"] = np.full(len(table), module_of(aman))
+    return table, tracks
+
+
+def detector_tracks(data: FitInputs, ra, dec, t_center, band_dets, fit_cfg: FitConfig,
+                    n_points=25, max_dets=60):
+    """Sky tracks (2, ndet, n_points) in radians (RA, Dec) of the detectors a forced fit at
+    ``t_center`` uses, over its window: what the event figure draws under the position."""
+    t = data.timestamps
+    lo, hi = np.searchsorted(t, [t_center - fit_cfg.window, t_center + fit_cfg.window])
+    live = band_dets[~data.dead[band_dets]]
+    _, _, dets = fit_window(data, ra, dec, lo, hi, live, fit_cfg)
+    dets = dets[:: max(1, len(dets) // max_dets)]
+    samples = np.linspace(lo, max(hi - 1, lo), n_points).astype(int)
+    d, s = np.meshgrid(dets, samples, indexing="ij")
+    track_ra, track_dec = pointing.radec_of_samples(data.bore_q, data.xi, data.eta, d.ravel(),
+                                                    s.ravel())
+    return np.stack([track_ra.reshape(d.shape), track_dec.reshape(d.shape)])

@@ -1,0 +1,92 @@
+"""The columns of the event tables, declared once (name, dtype, unit, meaning).
+
+* ``events``: one row per event (detections of one source joined in position and time);
+* ``lightcurves``: one row per crossing and band of an event's position, in lightcurvedb's
+  ``FluxMeasurement`` fields (source, time, position and uncertainties, flux, frequency,
+  module) plus the TOD's own (observation, wafer, scan, detection flag, upper limit);
+* ``lightcurve_fits``: one row per event and band, the paper's eq. 1 fitted.
+
+Catalogue units: degrees for positions, arcsec for their errors, ctime seconds and ISO UTC
+for times, mJy for fluxes. To add a column: add one :class:`Column` here and fill it where
+the table is built (:mod:`so_transients.events.tables`); tables are made with
+:func:`so_transients.candidates.typed_table`.
+"""
+from __future__ import annotations
+
+from ..candidates import Column
+from ..lightcurve_fit import FLARE_PARAMS
+
+_E, _L, _F = "events", "lightcurves", "lightcurve_fits"
+
+EVENTS = (
+    Column("event_id", "int", None, _E, "event number in this run, in order of first detection"),
+    Column("source_id", "int", None, _E, "events at one position within source_gap_hours share "
+                                         "it (lightcurvedb's source)"),
+    Column("name", "str", None, _E, "SOTR Jhhmmss.s+ddmmss: from the event's position"),
+    Column("ra", "float", "deg", _E, "inverse-variance weighted RA of its detections"),
+    Column("dec", "float", "deg", _E, "weighted Dec of its detections"),
+    Column("pos_err", "float", "arcsec", _E, "one-axis error of the weighted position"),
+    Column("t_first", "float", "s", _E, "ctime of the first detection's peak sample"),
+    Column("t_last", "float", "s", _E, "ctime of the last detection's peak sample"),
+    Column("t_first_utc", "str", None, _E, "t_first as ISO UTC"),
+    Column("t_last_utc", "str", None, _E, "t_last as ISO UTC"),
+    Column("n_detections", "int", None, _E, "detections joined (crossings x wafers x bands)"),
+    Column("obs_ids", "str", None, _E, "observations with a detection (comma-separated)"),
+    Column("wafers", "str", None, _E, "wafers with a detection"),
+    Column("bands", "str", None, _E, "bands with a detection"),
+    Column("peak_flux", "float", "mJy", _E, "brightest detection's fitted flux"),
+    Column("peak_flux_err", "float", "mJy", _E, "its error"),
+    Column("peak_band", "str", None, _E, "its band"),
+    Column("single_band", "bool", None, _E, "detected in one band only although another band "
+                                            "of the same wafers was measured"),
+    Column("joint_snr", "float", None, _E, "highest S/N of a detected crossing combined with "
+                                           "the other band's forced S/N at that crossing, "
+                                           "(snr_a + snr_b) / sqrt(2)"),
+    Column("alpha_mf", "float", None, _E, "spectral index S ~ nu^alpha, f090/f150, from "
+                                          "simultaneous crossings"),
+    Column("alpha_mf_err", "float", None, _E, "its error"),
+    Column("alpha_uhf", "float", None, _E, "spectral index f220/f280"),
+    Column("alpha_uhf_err", "float", None, _E, "its error"),
+    Column("n_crossings", "int", None, _E, "light-curve points (crossings x bands measured)"),
+    Column("n_upper_limits", "int", None, _E, "of which upper limits"),
+    Column("note", "str", None, _E, "what could not be measured, '' if nothing"),
+)
+
+LIGHTCURVES = (
+    Column("event_id", "int", None, _L, "the event measured"),
+    Column("source_id", "int", None, _L, "its source (lightcurvedb source_id)"),
+    Column("time", "str", None, _L, "ISO UTC of the crossing's centre (lightcurvedb time)"),
+    Column("ctime", "float", "s", _L, "the same as ctime"),
+    Column("ra", "float", "deg", _L, "position measured at (held: the event's)"),
+    Column("dec", "float", "deg", _L, "position measured at"),
+    Column("ra_uncertainty", "float", "deg", _L, "the event position's one-axis error"),
+    Column("dec_uncertainty", "float", "deg", _L, "the same"),
+    Column("flux", "float", "mJy", _L, "beam-fit amplitude with the position held"),
+    Column("flux_err", "float", "mJy", _L, "its error (the group's measured error scale)"),
+    Column("frequency", "int", "GHz", _L, "band as lightcurvedb's integer frequency"),
+    Column("module", "str", None, _L, "optics tube (det_info tube_slot)"),
+    Column("obs_id", "str", None, _L, "observation"),
+    Column("wafer_slot", "str", None, _L, "wafer"),
+    Column("bandpass", "str", None, _L, "band (det_info bandpass)"),
+    Column("scan", "int", None, _L, "scan within the observation (as transient_find counts)"),
+    Column("detected", "bool", None, _L, "a detection of the event is at this crossing"),
+    Column("snr", "float", None, _L, "flux / flux_err"),
+    Column("upper_limit", "float", "mJy", _L, "max(flux, 0) + k flux_err where snr < "
+                                              "detect_snr, else NaN"),
+    Column("offset", "float", "mJy", _L, "fitted constant C"),
+    Column("n_fit_dets", "int", None, _L, "detectors fitted"),
+    Column("chi2_red", "float", None, _L, "reduced chi^2 of the forced fit"),
+)
+
+_PARAM_UNITS = {"s_peak": "mJy", "t_peak": "s", "t_rise": "s", "t_decay": "s",
+                "eta_rise": None, "eta_decay": None}
+LIGHTCURVE_FITS = (
+    Column("event_id", "int", None, _F, "the event"),
+    Column("bandpass", "str", None, _F, "band fitted"),
+    *[c for name in FLARE_PARAMS for c in (
+        Column(name, "float", _PARAM_UNITS[name], _F, f"eq. 1 {name}"),
+        Column(f"{name}_err", "float", _PARAM_UNITS[name], _F, f"error of {name} (NaN: held)"))],
+    Column("chi2_red", "float", None, _F, "reduced chi^2"),
+    Column("n_points", "int", None, _F, "light-curve points fitted"),
+    Column("fit_ok", "bool", None, _F, "the fit converged with finite errors"),
+)

@@ -12,6 +12,7 @@ Subcommands:
 * ``campaign-combine RESULTS... -o OUT``: several campaigns' results (e.g. MF and UHF) as one;
 * ``events CONFIG``: detections joined into events, forced-photometry light curves, fits
   and figures (:mod:`so_transients.events.command`);
+* ``events-check CONFIG``: the events step measured on simulated flares and noise;
 * ``demo``: the main job on built-in default data (``make demo``).
 """
 from __future__ import annotations
@@ -117,6 +118,20 @@ def _events(args):
     return main(args.config, args.out, args.nproc, args.strict, args.quiet)
 
 
+def _events_check(args):
+    from astropy.table import Table
+
+    from .campaign.events_check import EventsCheckConfig, run_events_check
+
+    cfg = EventsCheckConfig.read(args.config, args.out)
+    t0 = time.time()
+    folder = run_events_check(cfg, progress=not args.quiet)
+    for name in ("events_per_flare", "lightcurve_recovery", "false_events"):
+        print(f"\n{name}:")
+        Table.read(folder / f"{name}.ecsv").pprint(max_lines=-1, max_width=-1)
+    print(f"Events check done in {time.time() - t0:.0f} s; results in {folder}")
+
+
 def _campaign_combine(args):
     from .campaign.combine import combine_results
 
@@ -200,6 +215,13 @@ def build_parser() -> argparse.ArgumentParser:
     from .events.command import get_parser as events_parser
     events_parser(p)
     p.set_defaults(func=_events)
+
+    p = add("events-check", "flares and noise through the site pipeline and the events "
+                            "command, compared with the truth")
+    p.add_argument("config", help="events-check YAML (e.g. configs/events_check.yaml)")
+    p.add_argument("-o", "--out", help="output folder (default: the config's `output`)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_events_check)
 
     p = add("demo", "simulate the default observation, run the site pipeline "
                     "and compare detections with the injected flares")

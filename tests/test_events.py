@@ -212,3 +212,29 @@ def test_events_config_reads_the_shipped_yaml_and_refuses_unknown_keys(tmp_path)
     path.write_text(yaml.safe_dump(shipped))
     with pytest.raises(ConfigError, match="photometry.*before"):
         load_events_config(path)
+
+
+def test_events_check_matches_events_to_flares_and_counts_false_ones():
+    from so_transients.campaign.events_check import (events_per_flare, false_event_table,
+                                                     match_events)
+
+    flares = Table(dict(ra=[1.0, 1.0], dec=[-0.5, -0.5 + 10 * ARCMIN], t_peak=[T0, T0 + 100],
+                        t_rise=[10.0, 2.0], t_decay=[10.0, 2.0], s_peak=[1000.0, 1000.0],
+                        spectral_index=[-1.0, -1.0]))
+    deg = np.degrees
+    events = Table(dict(ra=deg([1.0, 1.0, 1.0, 1.0]),
+                        dec=deg([-0.5, -0.5 + 10 * ARCMIN, -0.5, -0.5 + 20 * ARCMIN]),
+                        t_first=[T0 - 5, T0 + 99, T0 + 50, T0], t_last=[T0 + 8, T0 + 101,
+                                                                       T0 + 60, T0],
+                        bands=["f090,f150", "f090", "f150", "f090,f150"],
+                        joint_snr=[12.0, 8.0, 3.0, 4.0]))
+    matches = match_events(events, flares, 0.5 * ARCMIN, 5.0)
+    # event 2 is at flare 0's position but 40 s after its end; event 3 is nowhere
+    np.testing.assert_array_equal(matches, [[True, False], [False, True], [False, False],
+                                            [False, False]])
+    assert events_per_flare(matches, flares)["fraction_exactly_one"][0] == 1.0
+    rates = false_event_table(events, matches, events[:0], flares, 2.0, 6.0)
+    by = {r["requirement"]: r for r in rates}
+    assert by["none"]["false_events"] == 2 and by["none"]["per_wafer_hour"] == 1.0
+    assert by["both_bands"]["false_events"] == 1 and by["both_bands"]["flares_found"] == 1
+    assert by["joint_snr"]["false_events"] == 0 and by["joint_snr"]["efficiency"] == 1.0

@@ -20,7 +20,7 @@ from sotodlib import core
 
 CAND_AXIS = "transient_cand"
 HIT_AXIS = "transient_hit"
-STEPS = ("transient_find", "transient_cuts", "transient_fit")
+STEPS = ("transient_find", "transient_cuts", "transient_significance", "transient_fit")
 
 
 @dataclass(frozen=True)
@@ -31,6 +31,7 @@ class Column:
     step: str            # the step that fills it
     description: str
     saved: bool = True   # stored in the preprocess archive and in the catalogue
+    missing: object = None   # value where the step did not run or reach (None: by kind)
 
     @property
     def dtype(self):
@@ -39,10 +40,12 @@ class Column:
     @property
     def fill(self):
         """Value of the column for a candidate the step did not reach."""
+        if self.missing is not None:
+            return self.missing
         return {"int": -1, "float": np.nan, "bool": False, "str": ""}[self.kind]
 
 
-_F, _C, _T = STEPS
+_F, _C, _S, _T = STEPS
 SCHEMA = (
     Column("cand_id", "int", None, _F, "candidate number within its group (wafer x band)"),
     Column("bandpass", "str", None, _F, "band of the detectors (det_info bandpass)"),
@@ -75,6 +78,12 @@ SCHEMA = (
     Column("pol_flag", "bool", None, _C, "mostly one polarization orientation (not a cut)"),
     Column("cut_reason", "str", None, _C, "first cut failed, '' if none"),
     Column("passed", "bool", None, _C, "passed every cut"),
+    Column("coherent_snr", "float", None, _S, "coherent statistic Z of the crossing at the "
+                                               "candidate (optional step)"),
+    Column("far", "float", "1 / h", _S, "false alarms per wafer-band-hour with Z at least "
+                                        "this large, from time slides"),
+    Column("pass_far", "bool", None, _S, "far <= max_far (True without the step or max_far)",
+           missing=True),
     Column("flux", "float", "mJy", _T, "fitted amplitude A0 of the beam model"),
     Column("flux_err", "float", "mJy", _T, "error of flux (measured error scale applied)"),
     Column("ra", "float", "rad", _T, "position: the fitted one where the fit converged, "
@@ -97,8 +106,8 @@ SCHEMA = (
     Column("pass_peak_ratio", "bool", None, _T, "snr_max <= max_peak_ratio x snr_fit (a "
                                                  "glitch residue's one detector is far brighter "
                                                  "than the fitted source could make it)"),
-    Column("detected", "bool", None, _T, "fit_ok, snr_fit >= min_snr, pass_peak_ratio and not "
-                                          "moving"),
+    Column("detected", "bool", None, _T, "fit_ok, snr_fit >= min_snr, pass_peak_ratio, "
+                                          "pass_far and not moving"),
 )
 BY_NAME = {c.name: c for c in SCHEMA}
 

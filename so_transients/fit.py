@@ -514,7 +514,8 @@ def fit_group_candidates(data: FitInputs, cands, det_bands, cfg: FitConfig):
     significant = fitted & (np.nan_to_num(out["snr_fit"]) >= cfg.min_snr)
     out["moving"], out["motion_rate"] = _motion(cands, out, significant, cfg)
     out["pass_peak_ratio"] = peak_ratio_ok(cands["snr_max"], out["snr_fit"], cfg.max_peak_ratio)
-    out["detected"] = significant & ~out["moving"] & out["pass_peak_ratio"]
+    pass_far = np.asarray(cands.get("pass_far", np.ones(n, bool)), bool)
+    out["detected"] = significant & ~out["moving"] & out["pass_peak_ratio"] & pass_far
     return candidates.check(out, "transient_fit")
 
 

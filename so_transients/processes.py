@@ -29,6 +29,7 @@ from .candidates import CAND_AXIS, HIT_AXIS
 from .cuts import CutsConfig, cut_group_candidates, read_known_sources
 from .find import FindConfig, find_group_candidates, searchable_scans
 from .fit import SPEED_TOLERANCE, FitConfig, FitInputs, fit_group_candidates
+from .significance import SignificanceConfig, significance_by_band
 from .matched_filter import FilterConfig, matched_filter, response_kernels
 from .step_config import from_yaml
 from .step_fields import GroupName, require
@@ -40,6 +41,7 @@ PSD_EDGE_AXIS = "transient_psd_edge"
 SLOTS = "archive_slots"      # scalars in aman.transient_candidates: find's archive slots ...
 MIN_DETS = "min_dets"        # ... and detector threshold, for the later steps (and
 #                              fit.SPEED_TOLERANCE, the scan-speed tolerance)
+SCAN_FIELD = "transient_scan"   # transient_find's scan index per sample (-1: not searched)
 
 
 def _register(cls):
@@ -309,6 +311,7 @@ class TransientFind(_Preprocess):
         table.wrap(SPEED_TOLERANCE, float(self.cfg.speed_tolerance))
         _replace(aman, "transient_candidates", table)
         _replace(aman, "transient_hits", candidates.to_aman(hits, HIT_AXIS, len(hits["cand"])))
+        _replace(aman, SCAN_FIELD, scan.astype(np.int32), [(0, "samps")])
         _save_candidates(self, proc_aman, aman, cands)
         searchable = _report_searchable(scan, str(GroupName(aman)))
         if self.save_cfgs:     # per detector, so that groups concatenate along dets
@@ -378,6 +381,73 @@ class TransientCuts(_Preprocess):
                                       self.known, radius, aman.transient_snr,
                                       int(aman.transient_candidates[MIN_DETS]))
         candidates.add_to_aman(aman.transient_candidates, result, CAND_AXIS)
+        _save_candidates(self, proc_aman, aman, result)
+        return aman, proc_aman
+
+
+@_register
+class TransientSignificance(_Preprocess):
+    """A false-alarm rate for every candidate, from time slides of the group's own data.
+
+    Optional, between ``transient_cuts`` and ``transient_fit``. For each scan and band, the
+    coherent statistic Z (the maximum-likelihood S/N of a steady source over one wafer
+    crossing: every detector's filtered S/N at the time the position crosses it, weighted by
+    the beam across the scan and its noise) is computed at every position the wafer sees, on
+    the data and on ``n_slides`` time slides (each detector's S/N shifted cyclically within
+    the scan by its own random offset of at least ``min_slide_s``). Each candidate gets the
+    highest Z near its position and crossing time, normalized by Z's robust spread measured
+    on the slides, and ``far``: background maxima at least as high per hour of this
+    wafer-band (live time: ``n_slides`` x the time searched). With ``max_far`` (per
+    wafer-band-hour), a candidate above it is not ``detected`` by ``transient_fit``. See
+    :mod:`so_transients.significance` and :mod:`so_transients.coherent`.
+
+    Reads the scans ``transient_find`` searched (``aman.transient_scan``). In
+    ``aman.transient_candidates``: ``coherent_snr``, ``far`` (1/h), ``pass_far``; the
+    group's background live time and Z scale as ``significance_live_hours`` and
+    ``significance_z_scale``. Saved to the archive as ``proc_aman.transient_significance``
+    (on the detector axis, keyed by ``cand_id``).
+
+    Example config block::
+
+      - name: transient_significance
+        calc:
+          n_slides: 20                    # background live time: 20 x the data's
+          min_slide_s: 2.0                # every detector shifted at least this far
+          row_step: 0.8                   # beam sigmas between rows of positions
+          background_floor: 3.0           # background maxima counted from this Z
+          peak_window: 2.0                # crossing times searched around a candidate
+          max_far: null                   # per wafer-band-hour; null: report only
+          seed: 0
+        save: true
+    """
+
+    name = "transient_significance"
+
+    def __init__(self, step_cfgs):
+        super().__init__(step_cfgs)
+        self.cfg = from_yaml(SignificanceConfig, self.calc_cfgs, self.name)
+
+    def calc_and_save(self, aman, proc_aman):
+        require(aman, self.name)
+        cands = aman.transient_candidates
+        rows = candidates.from_aman(cands, CAND_AXIS)
+        f = aman.transient_filter
+        bands = np.asarray(f.bandpass).astype(str)
+        result, live, scale = significance_by_band(
+            aman.transient_snr, np.asarray(aman.timestamps), pointing.boresight_q(aman),
+            np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta),
+            np.asarray(aman[SCAN_FIELD]),
+            np.asarray(f.sigma_amp), ~np.asarray(f.dead, bool), np.asarray(f.beam_sigma),
+            bands, rows, self.cfg)
+        if self.cfg.max_far is not None and live * self.cfg.max_far < 1:
+            log.warning("%s: %s: %.2f h of background cannot resolve max_far = %g per hour "
+                        "(fewer than one false alarm expected in it): raise n_slides",
+                        self.name, GroupName(aman), live, self.cfg.max_far)
+        candidates.add_to_aman(cands, result, CAND_AXIS)
+        for name, value in (("significance_live_hours", live), ("significance_z_scale", scale)):
+            if name in cands._fields:
+                cands.move(name, None)
+            cands.wrap(name, value)
         _save_candidates(self, proc_aman, aman, result)
         return aman, proc_aman
 

@@ -19,6 +19,10 @@ REQUIRED = {
                        "transient_filter.beam_sigma") + _POINTING,
     "transient_cuts": ("transient_candidates", "transient_hits", "transient_snr",
                        "focal_plane.gamma", "transient_filter.beam_sigma") + _POINTING,
+    "transient_significance": ("transient_candidates", "transient_snr", "transient_scan",
+                               "transient_filter.sigma_amp", "transient_filter.dead",
+                               "transient_filter.beam_sigma",
+                               "transient_filter.bandpass") + _POINTING,
     "transient_fit": ("transient_candidates", "transient_snr", "transient_filter.bandpass",
                       "transient_filter.sigma_amp", "transient_filter.dead",
                       "transient_filter.beam_sigma", "transient_filter.fit_inflation",
@@ -28,6 +32,7 @@ OPTIONAL = {
     "transient_filter": ("obs_info.obs_id", "flags"),
     "transient_find": ("det_info.wafer_slot",) + _POINTING_OPTIONAL,
     "transient_cuts": _POINTING_OPTIONAL,
+    "transient_significance": _POINTING_OPTIONAL,
     "transient_fit": ("transient_hits",) + _POINTING_OPTIONAL,
 }
 

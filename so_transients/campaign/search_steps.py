@@ -20,7 +20,9 @@ from ..find import FindConfig
 from ..fit import FitConfig
 from ..step_config import from_yaml
 
-SEARCH_STEPS = candidates.STEPS
+#: The steps a campaign runs on its windows: transient_significance needs whole scans for its
+#: time slides, so the fast path leaves it out (it reports, and cuts, nothing there).
+SEARCH_STEPS = tuple(s for s in candidates.STEPS if s != "transient_significance")
 #: Columns of a campaign's detection tables (besides ``obs_id``).
 DETECTION_COLUMNS = ("bandpass", "wafer_slot", "t_peak", "ra", "dec", "ra_err", "dec_err",
                      "flux", "flux_err", "snr_fit", "n_dets", "snr_max")

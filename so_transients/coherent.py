@@ -1,0 +1,149 @@
+"""The coherent detection statistic of one wafer crossing (issue: significance you can trust).
+
+A source at sky position ``p`` crosses a wafer along the scan: detector ``d`` sees it when the
+source's drift across the focal plane brings it level with the detector along the scan, at
+``t_d = t0 + along_d / speed``, at a cross-scan offset ``delta_d = across_d - c``. With ``A_d``
+the matched-filter amplitude of detector ``d`` (S/N x sigma_d), the maximum-likelihood
+estimate of a steady source's flux over the crossing and its S/N are
+
+    S(p) = sum_d (b_d / sigma_d^2) A_d(t_d) / sum_d b_d^2 / sigma_d^2
+    Z(p) = sum_d (b_d / sigma_d) snr_d(t_d) / sqrt(sum_d b_d^2 / sigma_d^2),  b_d = B(delta_d)
+
+(``B`` the Gaussian beam across the scan). Positions are laid out as ``(c, t0)``: rows of
+cross-scan offset ``c`` from the wafer's centre, ``row_step`` beam sigmas apart (a source
+midway between rows loses ``1 - exp(-(row_step / 4)^2)`` of its Z: 4 % at the default 0.8),
+and every sample ``t0`` at which the position passes the centre. :func:`coherent_map` is a
+shift-and-add of the detectors' S/N streams. Its noise is not unit: detectors share
+residual atmosphere. :func:`measured_scale` measures it on the map itself (robust standard
+deviation), as ``transient_filter`` measures its S/N normalization.
+
+Everything here is on arrays: focal-plane offsets (radians), S/N streams, per-detector
+amplitude noise (mJy); no AxisManager.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from .robust import mad_std
+
+
+@dataclass
+class CrossingGeometry:
+    """The drift of sky positions across the focal plane during one constant-speed scan."""
+
+    along: np.ndarray        # (ndet,) offset of each detector along the drift, rad
+    across: np.ndarray       # (ndet,) offset across it, rad
+    speed: float             # rad/s of the drift
+    sample_rate: float       # Hz
+    centre: tuple = (0.0, 0.0)        # (xi, eta) the offsets are from
+    direction: tuple = (1.0, 0.0)     # unit vector of the drift in (xi, eta)
+
+    @classmethod
+    def from_drift(cls, xi, eta, velocity, sample_rate, centre=None):
+        """From detector positions and the drift ``velocity`` (rad/s, (2,)) of a sky position
+        across the focal plane; offsets from ``centre`` (default: the detectors' median)."""
+        xi, eta = np.asarray(xi, float), np.asarray(eta, float)
+        centre = (np.median(xi), np.median(eta)) if centre is None else centre
+        speed = float(np.hypot(*velocity))
+        ux, uy = np.asarray(velocity, float) / speed
+        out = cls(np.zeros(0), np.zeros(0), speed, float(sample_rate),
+                  (float(centre[0]), float(centre[1])), (float(ux), float(uy)))
+        out.along, out.across = out.point_offsets(xi, eta)
+        return out
+
+    def point_offsets(self, xi, eta):
+        """Along- and across-drift offsets (rad) of focal-plane points from the centre."""
+        (ux, uy), (x0, y0) = self.direction, self.centre
+        dx, dy = np.asarray(xi, float) - x0, np.asarray(eta, float) - y0
+        return dx * ux + dy * uy, -dx * uy + dy * ux
+
+    @property
+    def lag_samples(self) -> np.ndarray:
+        """Each detector's delay (samples, rounded) after the centre for a passing source."""
+        return np.rint(self.along / self.speed * self.sample_rate).astype(int)
+
+
+def row_offsets(geometry: CrossingGeometry, beam_sigma, row_step=0.8):
+    """Cross-scan offsets (rad) of the rows of positions: ``row_step`` beam sigmas apart,
+    covering the detectors' cross-scan extent."""
+    lo, hi = np.min(geometry.across), np.max(geometry.across)
+    step = row_step * beam_sigma
+    n = int(np.ceil((hi - lo) / step)) + 1
+    return lo + step * np.arange(n) - 0.5 * (step * (n - 1) - (hi - lo))
+
+
+def row_weights(geometry: CrossingGeometry, rows, beam_sigma, sigma_amp, live, reach=3.0):
+    """(nrow, ndet) weights ``b_d / sigma_d`` of each detector in each row (0 beyond
+    ``reach`` beam sigmas and for dead detectors) and (nrow,) the norms
+    ``sqrt(sum_d b_d^2 / sigma_d^2)``."""
+    delta = geometry.across[None, :] - np.asarray(rows)[:, None]
+    beam = np.exp(-0.5 * (delta / beam_sigma) ** 2) * (np.abs(delta) <= reach * beam_sigma)
+    sigma = np.asarray(sigma_amp, float)
+    ok = np.asarray(live, bool) & (sigma > 0)
+    weights = np.where(ok[None, :], beam / np.where(ok, sigma, 1.0)[None, :], 0.0)
+    return weights, np.sqrt(np.sum(weights**2, axis=1))
+
+
+def coherent_map(snr, geometry: CrossingGeometry, rows, beam_sigma, sigma_amp, live,
+                 offsets=None):
+    """``(z, flux)``: Z and the flux estimate S (mJy) on rows x samples of ``snr`` (ndet,
+    nsamp), with rows of cross-scan offsets ``rows``. Positions whose crossing reaches past
+    either end of ``snr`` are NaN. ``offsets`` (ndet,) samples added to each detector's lag
+    (a time slide, applied cyclically)."""
+    snr = np.asarray(snr)
+    ndet, nsamp = snr.shape
+    weights, norm = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
+    lags = geometry.lag_samples
+    acc = np.zeros((len(rows), nsamp))
+    for d in np.flatnonzero(np.any(weights != 0, axis=0)):
+        shift = lags[d] + (0 if offsets is None else int(offsets[d]))
+        series = np.roll(np.nan_to_num(snr[d]), -shift)     # series[t0] = snr[t0 + shift]
+        used = np.flatnonzero(weights[:, d])
+        acc[used] += weights[used, d][:, None] * series[None, :]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = acc / norm[:, None]
+        flux = acc / (norm**2)[:, None]
+    if offsets is None:      # positions whose crossing wraps around the ends are not real
+        lo, hi = max(0, -lags.min()), nsamp - max(0, lags.max())
+        z[:, :lo] = z[:, hi:] = np.nan
+        flux[:, :lo] = flux[:, hi:] = np.nan
+    return z, flux
+
+
+def measured_scale(z) -> float:
+    """The robust standard deviation of a map's finite values (1 for independent noise)."""
+    values = np.asarray(z)[np.isfinite(z)]
+    return float(mad_std(values)) if len(values) > 10 else 1.0
+
+
+def local_maxima(z, threshold, time_window):
+    """``(row, sample)`` of the local maxima of ``z`` at least ``threshold``, in a
+    neighbourhood of one row either side and ``time_window`` samples either side."""
+    filled = np.nan_to_num(z, nan=-np.inf)
+    peak = ndimage.maximum_filter(filled, size=(3, 2 * int(time_window) + 1), mode="nearest")
+    rows, samples = np.nonzero((filled == peak) & (filled >= threshold))
+    return rows, samples
+
+
+def time_slide_offsets(ndet, nsamp, min_shift, rng):
+    """Random cyclic offsets (samples) per detector, each at least ``min_shift`` from 0
+    modulo ``nsamp``: a real source no longer lines up across detectors, while each
+    detector's noise and glitches keep their statistics."""
+    if nsamp <= 2 * min_shift:
+        raise ValueError(f"a scan of {nsamp} samples is too short for time slides of at "
+                         f"least {min_shift} samples")
+    return rng.integers(min_shift, nsamp - min_shift, size=ndet)
+
+
+def false_alarm_rate(statistics, background, live_time_hours):
+    """False alarms per hour (of the background's wafer-band) with a statistic at least as
+    large as each of ``statistics``, from the ``background`` peaks found in
+    ``live_time_hours``; a statistic above every background peak gets the bound
+    ``1 / live_time_hours`` halved (no count: at most about one in the live time)."""
+    background = np.sort(np.asarray(background, float))
+    stats = np.atleast_1d(np.asarray(statistics, float))
+    count = len(background) - np.searchsorted(background, stats, side="left")
+    return np.where(count > 0, count, 0.5) / live_time_hours

@@ -1,0 +1,175 @@
+"""A false-alarm rate for every candidate of a group, from time slides of its own data.
+
+For each scan of each band of a group, the coherent statistic Z of every sky position the
+wafer crosses (:mod:`so_transients.coherent`) is computed on the filtered S/N as it is (the
+candidates' statistic: the highest Z within one row and ``peak_window`` beam-crossing times of
+the candidate's position and crossing time) and on ``n_slides`` time slides of it (each
+detector's stream shifted cyclically within the scan by its own random offset, at least
+``min_slide_s``: noise and glitches keep their statistics, a real source no longer lines up).
+The slides' local maxima are the background; their live time is ``n_slides`` times the time
+searched. Z is normalized by its robust standard deviation measured on the slides (residual
+atmosphere correlates neighbouring detectors, so it is not 1). A candidate's ``far`` is the
+rate, per hour of this wafer-band, of background maxima at least as large as its Z.
+
+Only the cheap statistic is repeated: the slides reuse the filtered S/N, never the filter.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import pointing
+from .coherent import (CrossingGeometry, coherent_map, false_alarm_rate, local_maxima,
+                       measured_scale, row_offsets, time_slide_offsets)
+from .scan_geometry import drift_velocity
+from .step_config import positive
+
+
+@dataclass
+class SignificanceConfig:
+    n_slides: int = 20               # time slides per scan: background live time / data's
+    min_slide_s: float = 2.0         # every detector is shifted at least this far
+    row_step: float = 0.8            # beam sigmas between rows of positions
+    background_floor: float = 3.0    # background maxima counted from this Z
+    peak_window: float = 2.0         # beam-crossing times searched around a candidate
+    max_far: float | None = None     # per wafer-band-hour; None: far is reported, not cut
+    seed: int = 0
+
+    def __post_init__(self):
+        positive("transient_significance", n_slides=self.n_slides,
+                 min_slide_s=self.min_slide_s, row_step=self.row_step,
+                 peak_window=self.peak_window, max_far=self.max_far)
+
+
+@dataclass
+class ScanMaps:
+    """What one scan of one band gives: its geometry, the map, the background maxima."""
+
+    first: int                       # first sample of the scan in the group
+    geometry: CrossingGeometry
+    rows: np.ndarray
+    z: np.ndarray                    # (nrow, nsamp) unnormalized Z of the data
+    background: list = field(default_factory=list)   # unnormalized Z of slide maxima
+    slide_scale: list = field(default_factory=list)  # robust std of each slide's map
+    live_s: float = 0.0              # seconds of positions searched, over all slides
+
+
+def scan_geometry(timestamps, bore_q, xi, eta, samples, sample_rate):
+    """The drift across the detectors ``xi``, ``eta`` during the scan ``samples``, measured
+    for the sky position at the detectors' centre at the scan's middle sample."""
+    mid = int(samples[len(samples) // 2])
+    centre = (float(np.median(xi)), float(np.median(eta)))
+    ra, dec = pointing.radec_of_samples(bore_q, [centre[0]], [centre[1]], [0], [mid])
+    velocity = drift_velocity(timestamps, bore_q, ra, dec, [timestamps[mid]])[0]
+    return CrossingGeometry.from_drift(xi, eta, velocity, sample_rate, centre)
+
+
+def scan_maps(snr, geometry, beam_sigma, sigma_amp, live, first, cfg: SignificanceConfig,
+              rng) -> ScanMaps:
+    """The data's map and the slides' background of one scan (``snr``: its samples)."""
+    rows = row_offsets(geometry, beam_sigma, cfg.row_step)
+    z, _ = coherent_map(snr, geometry, rows, beam_sigma, sigma_amp, live)
+    out = ScanMaps(first, geometry, rows, z)
+    nsamp = snr.shape[1]
+    min_shift = int(cfg.min_slide_s * geometry.sample_rate)
+    if nsamp <= 2 * min_shift + 1:
+        return out
+    window = max(1, int(geometry.sample_rate * beam_sigma / geometry.speed))
+    for _ in range(cfg.n_slides):
+        offsets = time_slide_offsets(snr.shape[0], nsamp, min_shift, rng)
+        slid, _ = coherent_map(snr, geometry, rows, beam_sigma, sigma_amp, live, offsets)
+        scale = measured_scale(slid)
+        r, s = local_maxima(slid, cfg.background_floor * scale, window)
+        out.background.extend(slid[r, s])
+        out.slide_scale.append(scale)
+        out.live_s += nsamp / geometry.sample_rate
+    return out
+
+
+def candidate_statistic(maps: ScanMaps, bore_q, timestamps, ra, dec, t_cand, beam_sigma,
+                        cfg: SignificanceConfig) -> float:
+    """The highest unnormalized Z within one row and ``peak_window`` crossing times of the
+    position (ra, dec) seen at ``t_cand`` (NaN when outside the map)."""
+    g = maps.geometry
+    i = int(np.clip(np.searchsorted(timestamps, t_cand), 0, len(timestamps) - 1))
+    xi, eta = pointing.source_in_focal_plane(bore_q[[i]], ra, dec)
+    along, across = g.point_offsets(xi[0], eta[0])
+    # the source drifts along +direction: it passed the centre along/speed before t_cand
+    t0 = i - maps.first - int(round(along / g.speed * g.sample_rate))
+    row = int(np.argmin(np.abs(maps.rows - across)))
+    half = int(round(cfg.peak_window * beam_sigma / g.speed * g.sample_rate))
+    lo, hi = max(t0 - half, 0), min(t0 + half + 1, maps.z.shape[1])
+    if hi <= lo:
+        return np.nan
+    patch = maps.z[max(row - 1, 0):row + 2, lo:hi]
+    return float(np.nanmax(patch)) if np.isfinite(patch).any() else np.nan
+
+
+def group_significance(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp, beam_sigma,
+                       sample_rate, cands, cfg: SignificanceConfig) -> dict:
+    """``coherent_snr``, ``far`` and ``pass_far`` of every candidate of one band of a group
+    (``cands``: ``ra``, ``dec``, ``t_median``, ``scan``), and the group's background
+    ``live_hours`` and ``z_scale``. ``dets``: the rows of ``snr`` (the group's S/N, possibly
+    memory-mapped: one scan of these rows is read at a time) of the band's live detectors;
+    ``xi``, ``eta``, ``sigma_amp``: theirs."""
+    live = np.ones(len(dets), bool)
+    rng = np.random.default_rng(cfg.seed)
+    n = len(cands["scan"])
+    stat = np.full(n, np.nan)
+    background, scales, live_s = [], [], 0.0
+    for s in np.unique(scan[scan >= 0]):
+        samples = np.flatnonzero(scan == s)
+        geometry = scan_geometry(timestamps, bore_q, xi, eta, samples, sample_rate)
+        maps = scan_maps(np.asarray(snr[dets, samples[0]:samples[-1] + 1]), geometry,
+                         beam_sigma, sigma_amp, live, samples[0], cfg, rng)
+        background.extend(maps.background)
+        scales.extend(maps.slide_scale)
+        live_s += maps.live_s
+        for c in np.flatnonzero(np.asarray(cands["scan"]) == s):
+            stat[c] = candidate_statistic(maps, bore_q, timestamps, cands["ra"][c],
+                                          cands["dec"][c], cands["t_median"][c], beam_sigma,
+                                          cfg)
+    scale = float(np.median(scales)) if scales else 1.0
+    live_hours = live_s / 3600.0
+    z = stat / scale
+    far = (false_alarm_rate(z, np.asarray(background) / scale, live_hours) if live_hours > 0
+           else np.full(n, np.nan))
+    far = np.where(np.isfinite(z), far, np.nan)
+    passed = np.ones(n, bool) if cfg.max_far is None else np.nan_to_num(far, nan=np.inf) \
+        <= cfg.max_far
+    return dict(coherent_snr=z, far=far, pass_far=passed, live_hours=live_hours,
+                z_scale=scale)
+
+
+def significance_by_band(snr, timestamps, bore_q, xi, eta, scan, sigma_amp, live, beam_sigma,
+                         bands, cands, cfg: SignificanceConfig):
+    """``(columns, live_hours, z_scale)``: :func:`group_significance` for each band of a
+    group (its detectors and candidates), the ``transient_significance`` columns for every
+    candidate (candidates of a band with no live detector: NaN, passing), and the background
+    live time and Z scale of the group (the first band's; one band per group in SO's
+    grouping)."""
+    from .scan_geometry import sample_rate
+
+    n = len(cands["scan"])
+    out = dict(coherent_snr=np.full(n, np.nan), far=np.full(n, np.nan),
+               pass_far=np.ones(n, bool))
+    fs = sample_rate(timestamps)
+    live_hours, scale = np.nan, np.nan
+    for band in np.unique(bands):
+        dets = np.flatnonzero((bands == band) & live)
+        sel = np.flatnonzero(np.asarray(cands["bandpass"]) == band)
+        if not len(dets):
+            continue
+        sub = dict(ra=np.asarray(cands["cluster_ra"])[sel],
+                   dec=np.asarray(cands["cluster_dec"])[sel],
+                   t_median=np.asarray(cands["t_median"])[sel],
+                   scan=np.asarray(cands["scan"])[sel])
+        res = group_significance(snr, dets, timestamps, bore_q, xi[dets], eta[dets], scan,
+                                 sigma_amp[dets], float(np.median(beam_sigma[dets])), fs, sub,
+                                 cfg)
+        for k in out:
+            out[k][sel] = res[k]
+        if not np.isfinite(live_hours):
+            live_hours, scale = res["live_hours"], res["z_scale"]
+    return out, float(live_hours), float(scale)

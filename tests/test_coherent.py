@@ -1,0 +1,109 @@
+"""The coherent statistic of a wafer crossing: normalization, sensitivity, time slides, far."""
+import numpy as np
+
+from so_transients.angles import ARCMIN
+from so_transients.coherent import (CrossingGeometry, coherent_map, false_alarm_rate,
+                                    local_maxima, measured_scale, row_offsets,
+                                    time_slide_offsets)
+
+FS = 200.0
+SIGMA_BEAM = 0.94 * ARCMIN               # f090 beam sigma
+SPEED = np.radians(1.0)                  # 1 deg/s drift across the focal plane
+
+
+def wafer(n_side=24, pitch=1.3 * ARCMIN, rng=None):
+    """A square grid of detectors and a drift along xi; per-detector amplitude noise."""
+    grid = (np.arange(n_side) - (n_side - 1) / 2) * pitch
+    xi, eta = (v.ravel() for v in np.meshgrid(grid, grid))
+    geometry = CrossingGeometry.from_drift(xi, eta, [SPEED, 0.0], FS, centre=(0.0, 0.0))
+    sigma = (rng or np.random.default_rng(0)).uniform(20, 60, len(xi))
+    return geometry, sigma
+
+
+def matched_pulse(n, centre, width):
+    t = np.arange(n)
+    return np.exp(-0.5 * ((t - centre) / width) ** 2)
+
+
+def inject(snr, geometry, sigma, flux, t0, c):
+    """A source of ``flux`` mJy passing the centre at sample ``t0`` at cross-scan ``c``:
+    each detector's filtered S/N peaks at its lag with amplitude flux x beam / sigma."""
+    beam = np.exp(-0.5 * ((geometry.across - c) / SIGMA_BEAM) ** 2)
+    width = SIGMA_BEAM / SPEED * FS
+    for d in np.flatnonzero(beam > 1e-4):
+        snr[d] += flux * beam[d] / sigma[d] * matched_pulse(snr.shape[1],
+                                                            t0 + geometry.lag_samples[d], width)
+
+
+def test_noise_only_z_has_unit_variance():
+    rng = np.random.default_rng(1)
+    geometry, sigma = wafer(rng=rng)
+    snr = rng.normal(size=(len(sigma), 4000))
+    rows = row_offsets(geometry, SIGMA_BEAM)
+    z, _ = coherent_map(snr, geometry, rows, SIGMA_BEAM, sigma, np.ones(len(sigma), bool))
+    values = z[np.isfinite(z)]
+    # ~40 rows x ~3000 samples, correlated over a few samples and rows: the standard
+    # deviation is known to a few per cent; 10 % is far outside the noise
+    assert abs(np.std(values) - 1) < 0.1 and abs(np.mean(values)) < 0.05
+    assert abs(measured_scale(z) - 1) < 0.1
+
+
+def test_z_of_a_crossing_matches_its_expected_value_and_flux():
+    rng = np.random.default_rng(2)
+    geometry, sigma = wafer(rng=rng)
+    rows = row_offsets(geometry, SIGMA_BEAM)
+    c = rows[len(rows) // 2]                       # on a row: no position loss
+    snr = rng.normal(size=(len(sigma), 4000))
+    inject(snr, geometry, sigma, 150.0, 2000, c)
+    z, flux = coherent_map(snr, geometry, rows, SIGMA_BEAM, sigma, np.ones(len(sigma), bool))
+    beam = np.exp(-0.5 * ((geometry.across - c) / SIGMA_BEAM) ** 2)
+    beam[np.abs(geometry.across - c) > 3 * SIGMA_BEAM] = 0
+    expected = 150.0 * np.sqrt(np.sum((beam / sigma) ** 2))
+    row = len(rows) // 2
+    # the peak is Z at the source plus noise of unit variance: within 10 % of expected
+    # (expected is about 27 here, so 10 % is 2.7 standard deviations of the noise)
+    assert abs(z[row, 2000] - expected) < 0.1 * expected
+    assert abs(flux[row, 2000] - 150.0) < 0.1 * 150.0
+    peaks = local_maxima(z, 8.0, 5)
+    assert (row, 2000) in set(zip(*peaks)) or np.max(np.abs(peaks[1] - 2000)) <= 1
+
+
+def test_a_time_slide_removes_the_source_and_keeps_the_noise():
+    rng = np.random.default_rng(3)
+    geometry, sigma = wafer(rng=rng)
+    rows = row_offsets(geometry, SIGMA_BEAM)
+    snr = rng.normal(size=(len(sigma), 6000))
+    inject(snr, geometry, sigma, 300.0, 3000, rows[len(rows) // 2])
+    live = np.ones(len(sigma), bool)
+    z, _ = coherent_map(snr, geometry, rows, SIGMA_BEAM, sigma, live)
+    offsets = time_slide_offsets(len(sigma), 6000, 200, rng)
+    slid, _ = coherent_map(snr, geometry, rows, SIGMA_BEAM, sigma, live, offsets=offsets)
+    assert np.nanmax(z) > 40
+    assert np.nanmax(slid) < 6                     # no alignment left
+    assert abs(measured_scale(slid) - 1) < 0.1
+
+
+def test_a_glitch_on_every_detector_at_one_instant_stays_incoherent():
+    """A cosmic-ray hit seen by every detector at the same sample lines up only along one
+    column of the focal plane: its Z is a small fraction of a source's of the same
+    per-detector amplitude."""
+    rng = np.random.default_rng(4)
+    geometry, sigma = wafer(rng=rng)
+    rows = row_offsets(geometry, SIGMA_BEAM)
+    live = np.ones(len(sigma), bool)
+    glitch = rng.normal(size=(len(sigma), 4000))
+    width = SIGMA_BEAM / SPEED * FS
+    glitch += 5.0 * matched_pulse(4000, 2000, width)[None, :]     # S/N 5 on every detector
+    z_glitch, _ = coherent_map(glitch, geometry, rows, SIGMA_BEAM, sigma, live)
+    source = rng.normal(size=(len(sigma), 4000))
+    inject(source, geometry, sigma, 5.0 * np.median(sigma), 2000, rows[len(rows) // 2])
+    z_source, _ = coherent_map(source, geometry, rows, SIGMA_BEAM, sigma, live)
+    assert np.nanmax(z_glitch) < 0.5 * np.nanmax(z_source)
+
+
+def test_false_alarm_rate_decreases_with_the_statistic():
+    background = np.random.default_rng(5).normal(size=1000) + 4
+    far = false_alarm_rate([3.0, 4.0, 5.0, 6.0, 10.0], background, 100.0)
+    assert np.all(np.diff(far) <= 0) and far[0] > far[2] > 0
+    assert far[-1] == 0.5 / 100.0                  # beyond every background peak: a bound
+    assert far[1] == np.sum(background >= 4.0) / 100.0

@@ -1,0 +1,76 @@
+"""transient_significance: a far for every candidate, in the site pipeline and the archive."""
+import logging
+
+import numpy as np
+import pytest
+import yaml
+from astropy.table import Table
+
+from so_transients import candidates
+from so_transients.results import archive_table
+from so_transients.site import failed_groups, run_site_pipeline, write_site_config
+
+from conftest import load_group, run_sim, run_steps
+
+STEP = {"name": "transient_significance", "calc": {"n_slides": 10}, "save": True}
+
+
+def with_significance(process_pipe, **calc):
+    """``process_pipe`` with transient_significance before transient_fit."""
+    steps = [dict(s) for s in process_pipe]
+    k = [s["name"] for s in steps].index("transient_fit")
+    steps.insert(k, {**STEP, "calc": {**STEP["calc"], **calc}})
+    return steps
+
+
+@pytest.fixture(scope="module")
+def significance_run(tmp_path_factory):
+    """Five minutes of w16 at f090, two bright flares; the site pipeline with the step."""
+    root = tmp_path_factory.mktemp("significance")
+    sim = run_sim(root, seed=41, observation={"duration": 300.0},
+                  instrument={"bands": ["f090"]},
+                  flares={"n": 2, "s_peak_mjy": [1500, 2500], "t_rise": [2, 20]})
+    config = write_site_config(root)
+    cfg = yaml.safe_load(config.read_text())
+    cfg["process_pipe"] = with_significance(cfg["process_pipe"])
+    config.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    run_site_pipeline(config)
+    return sim, config
+
+
+def test_every_candidate_gets_a_far_in_the_archive(significance_run):
+    _, config = significance_run
+    assert failed_groups(config) == ""
+    table = archive_table(config, detected_only=False)
+    assert {"coherent_snr", "far", "pass_far"} <= set(table.colnames)
+    assert table["far"].unit == "1 / h"
+    fitted = np.isfinite(table["coherent_snr"])
+    assert fitted.mean() > 0.9
+    detected = table[np.asarray(table["detected"], bool)]
+    assert len(detected) >= 2
+    # bright flares: beyond every background maximum of 10 slides of 5 minutes, so their
+    # far is the bound (half a false alarm in the background's live time)
+    assert np.all(detected["coherent_snr"] > 8)
+    assert np.all(detected["far"] <= np.nanmin(table["far"]) * 1.0001)
+    # far falls as Z rises
+    order = np.argsort(np.asarray(table["coherent_snr"])[fitted])
+    assert np.all(np.diff(np.asarray(table["far"])[fitted][order]) <= 1e-12)
+
+
+def test_max_far_cuts_and_a_background_too_short_is_named(significance_run, caplog):
+    sim, config = significance_run
+    aman = load_group(sim, band="f090")
+    pipe = yaml.safe_load(config.read_text())["process_pipe"]
+    steps = with_significance([s for s in pipe if s["name"] != STEP["name"]], max_far=1e-3)
+    with caplog.at_level(logging.WARNING):
+        run_steps(aman, steps)
+    cands = candidates.from_aman(aman.transient_candidates, candidates.CAND_AXIS)
+    assert not np.any(cands["pass_far"]) and not np.any(cands["detected"])
+    assert any("cannot resolve max_far" in r.message and sim.obs_ids[0] in r.message
+               for r in caplog.records)
+
+
+def test_without_the_step_candidates_pass_far(tmp_path):
+    rows = candidates.table({"cand_id": np.array([0]), "bandpass": np.array(["f090"])})
+    assert bool(rows["pass_far"][0]) and np.isnan(rows["far"][0])
+    assert isinstance(rows, Table)

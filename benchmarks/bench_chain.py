@@ -4,6 +4,7 @@
     python benchmarks/bench_chain.py --hours 1        # the full-size hour (860 x 792,000)
     python benchmarks/bench_chain.py --workers 2      # the filter's threads
     python benchmarks/bench_chain.py --json out.json  # also write the figures as JSON
+    python benchmarks/bench_chain.py --significance-slides 20   # with transient_significance
 
 Simulates the TOD (white noise, atmosphere, CMB, flares and glitches), loads it through its
 sotodlib Context, runs the standard steps of ``configs/preprocess_transients.yaml`` that come
@@ -50,7 +51,6 @@ from so_transients.scan_geometry import scan_speed  # noqa: E402
 from so_transients.sim.config import SimConfig  # noqa: E402
 from so_transients.sim.simulate import simulate  # noqa: E402
 
-STEPS = ("transient_filter", "transient_find", "transient_cuts", "transient_fit")
 TARGETS = {"chain_over_floor": 1.5, "speedup_vs_sotodlib": 2.0, "peak_over_signal": 3.0,
            "realtime_factor": 150.0}
 
@@ -63,11 +63,16 @@ def standard_steps():
     return steps[:[s["name"] for s in steps].index("transient_filter")]
 
 
-def pipeline_config(workers):
+def pipeline_config(workers, significance_slides=0):
+    """The transient steps; with ``significance_slides``, transient_significance with that
+    many time slides before transient_fit (its cost is then printed against the floor)."""
+    extra = ([{"name": "transient_significance", "calc": {"n_slides": significance_slides},
+               "save": True}] if significance_slides else [])
     return [
         {"name": "transient_filter", "process": {"workers": workers}, "calc": True, "save": True},
         {"name": "transient_find", "calc": {}, "save": True},
         {"name": "transient_cuts", "calc": {}, "save": True},
+        *extra,
         {"name": "transient_fit", "calc": {}, "save": True},
     ]
 
@@ -107,14 +112,14 @@ def clear_outputs(aman):
         aman.move(name, None)
 
 
-def run_chain(aman, workers):
+def run_chain(aman, workers, significance_slides=0):
     clear_outputs(aman)
     logger = logging.getLogger("bench_chain.pipeline")
     logger.setLevel(logging.DEBUG)
     logger.propagate = False
     clock = StepClock()
     logger.handlers = [clock]
-    pipe = Pipeline(pipeline_config(workers), logger=logger)
+    pipe = Pipeline(pipeline_config(workers, significance_slides), logger=logger)
     reset_peak_rss()
     start = time.perf_counter()
     proc = pipe.run(aman)
@@ -172,6 +177,8 @@ def main(argv=None):
     parser.add_argument("--skip-reference", action="store_true",
                         help="do not time the sotodlib-based filtering")
     parser.add_argument("--json", metavar="PATH")
+    parser.add_argument("--significance-slides", type=int, default=0, metavar="N",
+                        help="also run transient_significance with N time slides")
     parser.add_argument("--context", metavar="YAML",
                         help="benchmark the first observation of this dataset instead")
     args = parser.parse_args(argv)
@@ -189,12 +196,13 @@ def main(argv=None):
     signal = np.asarray(aman.signal)
     signal_bytes = signal.nbytes
     chunk = FilterConfig().chunk_dets
-    run_chain(aman, args.workers)                 # warm-up: numba compilation, caches
+    slides = args.significance_slides
+    run_chain(aman, args.workers, slides)         # warm-up: numba compilation, caches
     floors, chains, peaks = [], [], []
     for _ in range(args.repeats):
         floors.append(floor(signal, chunk))
         rss_before = rss("VmRSS")
-        steps, peak, proc = run_chain(aman, args.workers)
+        steps, peak, proc = run_chain(aman, args.workers, slides)
         chains.append(steps)
         peaks.append((peak, rss_before))
     cands = aman.transient_candidates
@@ -209,8 +217,9 @@ def main(argv=None):
 
 def report(args, aman, signal_bytes, floors, chains, peaks, reference, cands):
     duration = float(aman.timestamps[-1] - aman.timestamps[0])
+    names = [s["name"] for s in pipeline_config(1, args.significance_slides)]
     step_times = {name: float(np.median([c.get(name, np.nan) for c in chains]))
-                  for name in (*STEPS, "total")}
+                  for name in (*names, "total")}
     total, floor_s = step_times["total"], float(np.median(floors))
     peak, before = max(p for p, _ in peaks), min(b for _, b in peaks)
     result = {
@@ -232,7 +241,7 @@ def report(args, aman, signal_bytes, floors, chains, peaks, reference, cands):
         "detections": int(np.sum(np.asarray(cands.detected, bool))),
     }
     print(f"\n{'stage':<22}{'seconds':>10}{'x floor':>10}")
-    for name in ("floor", *STEPS, "total"):
+    for name in ("floor", *names, "total"):
         value = floor_s if name == "floor" else step_times[name]
         print(f"{name:<22}{value:>10.2f}{value / floor_s:>10.2f}")
     if reference is not None:

@@ -439,7 +439,11 @@ class TransientSignificance(_Preprocess):
             np.asarray(aman[SCAN_FIELD]),
             np.asarray(f.sigma_amp), ~np.asarray(f.dead, bool), np.asarray(f.beam_sigma),
             bands, rows, self.cfg)
-        if self.cfg.max_far is not None and live * self.cfg.max_far < 1:
+        if not live > 0:
+            log.warning("%s: %s: no constant-speed scan with live detectors long enough for "
+                        "time slides: far not computed (NaN), candidates pass", self.name,
+                        GroupName(aman))
+        elif self.cfg.max_far is not None and live * self.cfg.max_far < 1:
             log.warning("%s: %s: %.2f h of background cannot resolve max_far = %g per hour "
                         "(fewer than one false alarm expected in it): raise n_slides",
                         self.name, GroupName(aman), live, self.cfg.max_far)

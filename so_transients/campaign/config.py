@@ -22,6 +22,7 @@ import yaml
 
 from ..bands import WHITE_NOISE_MJY
 from ..sim.config import SimConfig
+from ..sim.sources import PLACEMENTS
 from ..site import TEMPLATE, apply_overrides
 from .search_steps import split_pipe
 
@@ -68,11 +69,25 @@ class Matching:
 
 @dataclass
 class Injection:
+    """How flares are placed, injected and searched.
+
+    ``placement``: ``detector_at_peak`` puts each flare where a random detector of the band
+    points at the flare's peak time (the peak is always sampled); ``scan_area`` where one points
+    at an independent random constant-velocity time (anywhere in the scanned area: the peak is
+    usually not sampled, as for the paper's example flare). The peak time is uniform in the
+    constant-velocity part either way."""
+
     window_pad: float = 3.0          # s of data kept on each side of a crossing
     filter_pad: float = 10.0         # s of zero padding when filtering the injected signal
     strip_sigma: float = 10.0        # detectors within this many beam sigmas of the track
     min_expected_snr: float = 0.5    # skip crossings whose best detector expects less S/N
     max_crossings: int | None = None  # per flare and group, brightest first (None: all)
+    placement: str = "detector_at_peak"   # or "scan_area" (see above)
+
+    def __post_init__(self):
+        if self.placement not in PLACEMENTS:
+            raise ValueError(f"campaign injection placement {self.placement!r}: "
+                             f"use one of {PLACEMENTS}")
 
 
 @dataclass
@@ -133,10 +148,13 @@ class CampaignConfig:
                 for c in self.full_check.cells]
 
     def digest(self) -> str:
-        """Hash of everything that changes results (not the output folder or process count)."""
+        """Hash of everything that changes results (not the output folder or process count).
+        The default flare placement is left out, so configs written before it keep their hash."""
         data = dataclasses.asdict(self)
         data.pop("output")
         data.pop("nproc")
+        if self.injection.placement == Injection().placement:
+            data["injection"].pop("placement")
         data["preprocess"] = self.process_pipe
         text = json.dumps(data, sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:16]

@@ -102,9 +102,10 @@ def run_unit(spec: dict) -> dict:
     cell = Cell(**spec["cell"])
     states = [_state(Group(*g), folder, spec["search_steps"]) for g, folder in spec["groups"]]
     rng = rng_for(spec["seed"], "campaign", cell.label, spec["obs_id"])
-    flares = draw_cell_flares(cell, spec["n"], states, rng)
+    options = Injection(**spec["injection"])
+    flares = draw_cell_flares(cell, spec["n"], states, rng, options.placement)
     flares["source_id"] += spec["first_id"]
-    flares, detections = search_flares(states, flares, Injection(**spec["injection"]),
+    flares, detections = search_flares(states, flares, options,
                                        spec["max_dt"], spec["max_offset_arcmin"] * ARCMIN)
     flares["obs_id"] = spec["obs_id"]
     meta = {"config_digest": spec["digest"], "cell": cell.label, "obs_id": spec["obs_id"]}

@@ -9,7 +9,9 @@ the beam is evaluated only for samples where the source lies within reach of the
 Random flares follow the paper's injection (section 2.4): the peak time is drawn uniformly from
 the constant-velocity parts of the scans, and the position is where a randomly chosen simulated
 detector points at that time (plus up to half a pixel pitch), so every flare is inside the
-scanned footprint and crossed by a wafer near its peak.
+scanned footprint and crossed by a wafer near its peak. Campaigns can instead place it where a
+random detector points at an independent random time (``placement="scan_area"``): anywhere in
+the scanned area, so a fast flare's peak is usually not sampled.
 """
 from __future__ import annotations
 
@@ -30,6 +32,10 @@ REFERENCE_GHZ = CENTER_GHZ["f090"]
 
 #: Beam is evaluated out to this many sigma.
 BEAM_REACH_SIGMA = 6.0
+
+#: Where :func:`draw_flares` puts random flares: at a detector's pointing at the peak time, or
+#: at a detector's pointing at an independent random time (anywhere in the scanned area).
+PLACEMENTS = ("detector_at_peak", "scan_area")
 
 FLARE_COLUMNS = [("source_id", int, None), ("band", str, None), ("ra", float, u.rad),
                  ("dec", float, u.rad), ("t_peak", float, u.s), ("s_peak", float, u.mJy),
@@ -106,8 +112,14 @@ def _explicit_position(entry, ctx: PointingContext):
     raise ValueError(f"a listed source needs ra/dec (deg) or at_detector/at_time: {entry}")
 
 
-def draw_flares(config, bands, ctx: PointingContext, rng) -> Table:
-    """Truth table of flares (one row per flare and band), explicit ones first, then random."""
+def draw_flares(config, bands, ctx: PointingContext, rng, placement="detector_at_peak") -> Table:
+    """Truth table of flares (one row per flare and band), explicit ones first, then random.
+
+    Random flares peak at a random constant-velocity sample; ``placement`` (:data:`PLACEMENTS`)
+    puts them where a random detector points at that sample (``detector_at_peak``: the peak is
+    sampled) or at another, independent one (``scan_area``), plus up to half a pixel pitch."""
+    if placement not in PLACEMENTS:
+        raise ValueError(f"flare placement {placement!r}: use one of {PLACEMENTS}")
     rows = []
     t0 = ctx.timestamps[0]
     for entry in config.list:
@@ -123,7 +135,8 @@ def draw_flares(config, bands, ctx: PointingContext, rng) -> Table:
     cv_samples = np.flatnonzero(ctx.cv_mask)
     for _ in range(config.n):
         samp = int(rng.choice(cv_samples))
-        ra, dec = _draw_position(rng, ctx, samp)
+        at = samp if placement == "detector_at_peak" else int(rng.choice(cv_samples))
+        ra, dec = _draw_position(rng, ctx, at)
         t_rise = float(_log_uniform(rng, config.t_rise, 1)[0])
         t_decay = t_rise if config.t_decay is None else float(_log_uniform(rng, config.t_decay, 1)[0])
         rows.append(dict(ra=ra, dec=dec, t_peak=float(ctx.timestamps[samp]),

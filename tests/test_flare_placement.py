@@ -1,0 +1,47 @@
+"""Campaign flare placement: at a detector's pointing at the peak time, or anywhere scanned."""
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from conftest import load_group
+from so_transients.campaign.config import Cell, Injection
+from so_transients.campaign.flare_injection import draw_cell_flares
+from so_transients.pointing import boresight_q, source_in_focal_plane
+from so_transients.scan_geometry import detector_pitch
+
+
+@pytest.fixture(scope="module")
+def group_state(bright_source_dataset):
+    """The fields of a prepared group that drawing flares reads, from one simulated wafer."""
+    aman = load_group(bright_source_dataset)
+    return SimpleNamespace(aman=aman, timestamps=np.asarray(aman.timestamps),
+                           bore_q=boresight_q(aman), xi=np.asarray(aman.focal_plane.xi),
+                           eta=np.asarray(aman.focal_plane.eta))
+
+
+def _offset_at_peak(state, flares):
+    """Angle (radians) from each flare to the nearest detector at the flare's peak sample."""
+    out = []
+    for f in flares:
+        k = int(np.argmin(np.abs(state.timestamps - f["t_peak"])))
+        xi, eta = source_in_focal_plane(state.bore_q[k:k + 1], f["ra"], f["dec"])
+        out.append(np.hypot(state.xi - xi[0], state.eta - eta[0]).min())
+    return np.array(out)
+
+
+def test_scan_area_placement_rarely_puts_a_detector_on_the_peak(group_state):
+    cell = Cell("f090", 0.5, 500.0)
+    pitch = detector_pitch(group_state.xi, group_state.eta)
+    at_peak = draw_cell_flares(cell, 40, [group_state], np.random.default_rng(3))
+    anywhere = draw_cell_flares(cell, 40, [group_state], np.random.default_rng(3), "scan_area")
+    # the default: a detector within half a pitch at the peak (1e-3 pitch: flat-sky slack)
+    assert np.all(_offset_at_peak(group_state, at_peak) <= 0.501 * pitch)
+    # scan_area: the same peak times, but most peaks fall far from every detector
+    assert np.array_equal(at_peak["t_peak"][:1], anywhere["t_peak"][:1])
+    assert np.mean(_offset_at_peak(group_state, anywhere) > 2 * pitch) > 0.8
+
+
+def test_unknown_placement_is_refused():
+    with pytest.raises(ValueError, match="placement"):
+        Injection(placement="at_random")

@@ -45,3 +45,23 @@ def test_scan_area_placement_rarely_puts_a_detector_on_the_peak(group_state):
 def test_unknown_placement_is_refused():
     with pytest.raises(ValueError, match="placement"):
         Injection(placement="at_random")
+
+
+def _offset_at(state, flare, t):
+    k = int(np.argmin(np.abs(state.timestamps - t)))
+    xi, eta = source_in_focal_plane(state.bore_q[k:k + 1], flare["ra"], flare["dec"])
+    return np.hypot(state.xi - xi[0], state.eta - eta[0]).min()
+
+
+def test_active_window_placement_meets_the_flare_within_its_light_curve(group_state):
+    """A detector points at each flare at some moment of its active window (within half a
+    pitch), and for most flares not at the peak itself."""
+    cell = Cell("f090", 2.0, 500.0)
+    pitch = detector_pitch(group_state.xi, group_state.eta)
+    flares = draw_cell_flares(cell, 30, [group_state], np.random.default_rng(4),
+                              "active_window")
+    t = group_state.timestamps
+    for f in flares:
+        inside = t[(t >= f["t_peak"] - f["t_rise"]) & (t <= f["t_peak"] + f["t_decay"])]
+        assert min(_offset_at(group_state, f, s) for s in inside) <= 0.6 * pitch
+    assert np.mean(_offset_at_peak(group_state, flares) > 2 * pitch) > 0.5

@@ -74,15 +74,17 @@ class Injection:
     ``placement``: ``detector_at_peak`` puts each flare where a random detector of the band
     points at the flare's peak time (the peak is always sampled); ``scan_area`` where one points
     at an independent random constant-velocity time (anywhere in the scanned area: the peak is
-    usually not sampled, as for the paper's example flare). The peak time is uniform in the
-    constant-velocity part either way."""
+    usually not sampled, as for the paper's example flare); ``active_window`` where one points
+    at a time uniform within the flare's active window (the array meets the flare at a random
+    phase of its light curve). The peak time is uniform in the constant-velocity part in every
+    case."""
 
     window_pad: float = 3.0          # s of data kept on each side of a crossing
     filter_pad: float = 10.0         # s of zero padding when filtering the injected signal
     strip_sigma: float = 10.0        # detectors within this many beam sigmas of the track
     min_expected_snr: float = 0.5    # skip crossings whose best detector expects less S/N
     max_crossings: int | None = None  # per flare and group, brightest first (None: all)
-    placement: str = "detector_at_peak"   # or "scan_area" (see above)
+    placement: str = "detector_at_peak"   # or "scan_area", "active_window" (see above)
 
     def __post_init__(self):
         if self.placement not in PLACEMENTS:

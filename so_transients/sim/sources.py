@@ -35,7 +35,7 @@ BEAM_REACH_SIGMA = 6.0
 
 #: Where :func:`draw_flares` puts random flares: at a detector's pointing at the peak time, or
 #: at a detector's pointing at an independent random time (anywhere in the scanned area).
-PLACEMENTS = ("detector_at_peak", "scan_area")
+PLACEMENTS = ("detector_at_peak", "scan_area", "active_window")
 
 FLARE_COLUMNS = [("source_id", int, None), ("band", str, None), ("ra", float, u.rad),
                  ("dec", float, u.rad), ("t_peak", float, u.s), ("s_peak", float, u.mJy),
@@ -112,12 +112,26 @@ def _explicit_position(entry, ctx: PointingContext):
     raise ValueError(f"a listed source needs ra/dec (deg) or at_detector/at_time: {entry}")
 
 
+def _draw_durations(rng, config):
+    """A random flare's rise and decay times (s)."""
+    t_rise = float(_log_uniform(rng, config.t_rise, 1)[0])
+    t_decay = t_rise if config.t_decay is None else float(_log_uniform(rng, config.t_decay, 1)[0])
+    return t_rise, t_decay
+
+
+def _nearest(timestamps, samples, t):
+    """The one of ``samples`` whose time is nearest ``t``."""
+    return int(samples[np.argmin(np.abs(timestamps[samples] - t))])
+
+
 def draw_flares(config, bands, ctx: PointingContext, rng, placement="detector_at_peak") -> Table:
     """Truth table of flares (one row per flare and band), explicit ones first, then random.
 
     Random flares peak at a random constant-velocity sample; ``placement`` (:data:`PLACEMENTS`)
     puts them where a random detector points at that sample (``detector_at_peak``: the peak is
-    sampled) or at another, independent one (``scan_area``), plus up to half a pixel pitch."""
+    sampled), at another, independent one (``scan_area``), or at the constant-velocity sample
+    nearest a time uniform within the flare's active window (``active_window``: the array
+    meets the flare at a random phase of its light curve), plus up to half a pixel pitch."""
     if placement not in PLACEMENTS:
         raise ValueError(f"flare placement {placement!r}: use one of {PLACEMENTS}")
     rows = []
@@ -135,10 +149,15 @@ def draw_flares(config, bands, ctx: PointingContext, rng, placement="detector_at
     cv_samples = np.flatnonzero(ctx.cv_mask)
     for _ in range(config.n):
         samp = int(rng.choice(cv_samples))
-        at = samp if placement == "detector_at_peak" else int(rng.choice(cv_samples))
+        if placement == "active_window":
+            t_rise, t_decay = _draw_durations(rng, config)
+            at = _nearest(ctx.timestamps, cv_samples,
+                          ctx.timestamps[samp] + rng.uniform(-t_rise, t_decay))
+        else:
+            at = samp if placement == "detector_at_peak" else int(rng.choice(cv_samples))
         ra, dec = _draw_position(rng, ctx, at)
-        t_rise = float(_log_uniform(rng, config.t_rise, 1)[0])
-        t_decay = t_rise if config.t_decay is None else float(_log_uniform(rng, config.t_decay, 1)[0])
+        if placement != "active_window":
+            t_rise, t_decay = _draw_durations(rng, config)
         rows.append(dict(ra=ra, dec=dec, t_peak=float(ctx.timestamps[samp]),
                          s_peak=float(_log_uniform(rng, config.s_peak_mjy, 1)[0]),
                          t_rise=t_rise, t_decay=t_decay,

@@ -95,11 +95,11 @@ def _demo(args):
 def _campaign(args):
     from .campaign.config import load_campaign
     from .campaign.run import run_campaign
-    from .parallel import executor
+    from .parallel import executor, is_worker_rank
 
     cfg = load_campaign(args.config, {"output": args.out, "nproc": args.nproc})
     pool, as_completed = executor(cfg.nproc)
-    if pool is None and cfg.nproc > 1:
+    if is_worker_rank(pool, cfg.nproc):
         return          # an MPI worker rank: it served units until rank 0 finished
     t0 = time.time()
     try:

@@ -66,7 +66,7 @@ class CrossingGeometry:
         return np.rint(self.along / self.speed * self.sample_rate).astype(int)
 
 
-def row_offsets(geometry: CrossingGeometry, beam_sigma, row_step=0.8):
+def row_offsets(geometry: CrossingGeometry, beam_sigma, row_step):
     """Cross-scan offsets (rad) of the rows of positions: ``row_step`` beam sigmas apart,
     covering the detectors' cross-scan extent."""
     lo, hi = np.min(geometry.across), np.max(geometry.across)
@@ -107,10 +107,29 @@ def coherent_map(snr, geometry: CrossingGeometry, rows, beam_sigma, sigma_amp, l
         z = acc / norm[:, None]
         flux = acc / (norm**2)[:, None]
     if offsets is None:      # positions whose crossing wraps around the ends are not real
-        lo, hi = max(0, -lags.min()), nsamp - max(0, lags.max())
+        lo = min(max(0, -lags.min()), nsamp)
+        hi = max(nsamp - max(0, lags.max()), lo)
         z[:, :lo] = z[:, hi:] = np.nan
         flux[:, :lo] = flux[:, hi:] = np.nan
     return z, flux
+
+
+def largest_share(snr, geometry: CrossingGeometry, rows, beam_sigma, sigma_amp, live,
+                  peak_rows, peak_samples, offsets=None):
+    """For each map position (``peak_rows``, ``peak_samples``) the largest share one
+    detector has of its Z's sum: near 1 when a single detector's spike makes the peak (a
+    glitch, or a bright source's own detectors moved apart by a time slide), small for a
+    source or noise spread over the many detectors of a crossing."""
+    weights, _ = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
+    nsamp = np.asarray(snr).shape[1]
+    shifts = geometry.lag_samples + (0 if offsets is None else np.asarray(offsets, int))
+    out = np.zeros(len(peak_rows))
+    for k, (r, t0) in enumerate(zip(peak_rows, peak_samples)):
+        dets = np.flatnonzero(weights[r])
+        terms = weights[r, dets] * np.nan_to_num(snr[dets, (t0 + shifts[dets]) % nsamp])
+        total = terms.sum()
+        out[k] = terms.max() / total if total > 0 else 1.0
+    return out
 
 
 def measured_scale(z) -> float:

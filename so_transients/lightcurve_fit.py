@@ -60,6 +60,10 @@ def fit_flare(t, flux, flux_err, cfg: FlareFitConfig | None = None) -> dict:
     n_par = 6 if cfg.fit_indices else 4
     if len(t) < max(cfg.min_points, n_par):
         return out
+    # times from the most significant point: on absolute ctimes (1.7e9 s) the finite-
+    # difference steps of the peak time would be tens of seconds
+    t_ref = float(t[np.argmax(flux / err)])
+    t = t - t_ref
     lower = [0.0, t.min() - cfg.max_time_s, cfg.min_time_s, cfg.min_time_s, 0.1, 0.1][:n_par]
     upper = [np.inf, t.max() + cfg.max_time_s, cfg.max_time_s, cfg.max_time_s, 5.0, 5.0][:n_par]
     resid = lambda p: (_model(p, t, cfg) - flux) / err
@@ -77,6 +81,7 @@ def fit_flare(t, flux, flux_err, cfg: FlareFitConfig | None = None) -> dict:
     except np.linalg.LinAlgError:
         errors = np.full(n_par, np.nan)
     params = list(best.x) + ([] if cfg.fit_indices else [cfg.eta, cfg.eta])
+    params[1] += t_ref
     errors = list(errors) + ([] if cfg.fit_indices else [np.nan, np.nan])
     for k, name in enumerate(FLARE_PARAMS):
         out[name], out[f"{name}_err"] = float(params[k]), float(errors[k])
@@ -85,7 +90,7 @@ def fit_flare(t, flux, flux_err, cfg: FlareFitConfig | None = None) -> dict:
     return out
 
 
-def spectral_index(flux_a, err_a, flux_b, err_b, band_a, band_b, min_snr=3.0):
+def spectral_index(flux_a, err_a, flux_b, err_b, band_a, band_b, min_snr):
     """``(alpha, alpha_err, n)``: the inverse-variance weighted spectral index of pairs of
     simultaneous measurements in bands ``band_a`` and ``band_b`` (``S ~ nu^alpha`` at the
     bands' centre frequencies), from the pairs where both fluxes reach ``min_snr``; NaN and

@@ -12,9 +12,22 @@ import multiprocessing
 from tqdm.auto import tqdm
 
 
+#: Variables MPI launchers set to the number of ranks (Open MPI, MPICH / Intel MPI, PMIx).
+MPI_SIZE_VARIABLES = ("OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "PMIX_SIZE")
+
+
+def under_mpi() -> bool:
+    """Whether this process is one of several MPI ranks (from the launcher's variables)."""
+    import os
+
+    return any(int(os.environ.get(k, "1") or 1) > 1 for k in MPI_SIZE_VARIABLES)
+
+
 def executor(nproc):
-    """(executor, as_completed) from sotodlib's ``get_exec_env``; None for one process."""
-    if nproc <= 1:
+    """(executor, as_completed) from sotodlib's ``get_exec_env``; None for one process.
+    Under ``mpirun`` the ranks are the workers whatever ``nproc`` says (rank 0 gets the
+    executor, the others None): every rank running the whole job would write the same files."""
+    if nproc <= 1 and not under_mpi():
         return None, None
     from sotodlib.utils.procs_pool import get_exec_env
 
@@ -25,6 +38,12 @@ def executor(nproc):
             nproc, mp_context=multiprocessing.get_context("spawn"))
         as_completed = concurrent.futures.as_completed
     return pool, as_completed
+
+
+def is_worker_rank(pool, nproc) -> bool:
+    """Whether :func:`executor` made this process an MPI worker rank (it has served work
+    units until rank 0 finished, and must not run the job itself)."""
+    return pool is None and (nproc > 1 or under_mpi())
 
 
 def run_all(func, specs, desc, progress=True, pool=None, as_completed=None, unit="unit"):

@@ -395,8 +395,8 @@ class TransientSignificance(_Preprocess):
     the beam across the scan and its noise) is computed at every position the wafer sees, on
     the data and on ``n_slides`` time slides (each detector's S/N shifted cyclically within
     the scan by its own random offset of at least ``min_slide_s``). Each candidate gets the
-    highest Z near its position and crossing time, normalized by Z's robust spread measured
-    on the slides, and ``far``: background maxima at least as high per hour of this
+    highest Z near its position and crossing time, each map in units of its own measured
+    spread, and ``far``: background maxima at least as high per hour of this
     wafer-band (live time: ``n_slides`` x the time searched). With ``max_far`` (per
     wafer-band-hour), a candidate above it is not ``detected`` by ``transient_fit``. See
     :mod:`so_transients.significance` and :mod:`so_transients.coherent`.
@@ -416,6 +416,7 @@ class TransientSignificance(_Preprocess):
           row_step: 0.8                   # beam sigmas between rows of positions
           background_floor: 3.0           # background maxima counted from this Z
           peak_window: 2.0                # crossing times searched around a candidate
+          max_single_share: 0.5           # background maxima one detector makes: left out
           max_far: null                   # per wafer-band-hour; null: report only
           seed: 0
         save: true

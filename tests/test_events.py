@@ -171,11 +171,11 @@ def test_spectral_index_of_simultaneous_crossings():
     f150 = f090 * (CENTER_GHZ["f150"] / CENTER_GHZ["f090"]) ** -1.0
     err = np.full(20, 30.0)
     alpha, alpha_err, n = spectral_index(f090 + rng.normal(0, err), err,
-                                         f150 + rng.normal(0, err), err, "f090", "f150")
+                                         f150 + rng.normal(0, err), err, "f090", "f150", 3.0)
     assert n == 20
     assert abs(alpha + 1.0) < 3 * alpha_err < 0.2
     # crossings below min_snr in either band are not used
-    assert spectral_index([100.0], [50.0], [300.0], [10.0], "f090", "f150")[2] == 0
+    assert spectral_index([100.0], [50.0], [300.0], [10.0], "f090", "f150", 3.0)[2] == 0
 
 
 def test_an_event_without_crossings_says_so():
@@ -183,7 +183,7 @@ def test_an_event_without_crossings_says_so():
     dets = detections(crossings_of(1.0, -0.5, T0, rng))
     events, labels = associate_detections(dets, AssociationConfig())
     empty = lightcurve_table(Table(), events, dets, labels)
-    done = complete_events(events, empty)
+    done = complete_events(events, empty, 3.0)
     assert done["n_crossings"][0] == 0
     assert "no crossing" in done["note"][0]
 

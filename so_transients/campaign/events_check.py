@@ -27,7 +27,7 @@ import yaml
 from astropy.table import Table
 
 from ..angles import ARCMIN, sky_separation
-from ..bands import CENTER_GHZ
+from ..bands import CENTER_GHZ, FLAVOR_BANDS
 from ..events.command import run_events
 from ..events.config import load_events_config
 from ..lightcurve import active_window
@@ -104,9 +104,9 @@ def match_events(events: Table, flares: Table, max_offset, pad) -> np.ndarray:
 
 def requirement_masks(events: Table, joint_min) -> dict:
     bands = [set(str(b).split(",")) for b in events["bands"]]
+    pairs = [set(p) for p in FLAVOR_BANDS.values()]
     return {"none": np.ones(len(events), bool),
-            "both_bands": np.array([len(b & {"f090", "f150"}) == 2 or
-                                    len(b & {"f220", "f280"}) == 2 for b in bands], bool),
+            "both_bands": np.array([any(p <= b for p in pairs) for b in bands], bool),
             "joint_snr": np.nan_to_num(np.asarray(events["joint_snr"], float)) >= joint_min}
 
 

@@ -35,7 +35,7 @@ import numpy as np
 from astropy.table import Table, vstack
 from tqdm.auto import tqdm
 
-from ..parallel import executor, run_all
+from ..parallel import executor, is_worker_rank, run_all
 from ..provenance import fits_header, provenance
 from ..results import archive_entries, archive_status, archive_table
 from ..site import archive_index
@@ -87,9 +87,12 @@ def file_stamp(path) -> str:
 def _error_scale(cands: Table, obs_id, tags) -> float | None:
     """The error scale ``transient_fit`` measured in this group (None: it fitted nothing)."""
     sel = np.asarray(cands["obs_id"]) == obs_id
-    for key, value in tags.items():
-        if key in cands.colnames:
-            sel &= np.asarray(cands[key]).astype(str) == str(value)
+    matched = [key for key in tags if key in cands.colnames]
+    if tags and not matched:
+        log.warning("%s: none of the group's keys %s is a candidate column: its error scale "
+                    "is taken from the whole observation", obs_id, sorted(tags))
+    for key in matched:
+        sel &= np.asarray(cands[key]).astype(str) == str(tags[key])
     scales = np.asarray(cands["error_scale"][sel], float)
     scales = scales[np.isfinite(scales)]
     return float(np.median(scales)) if len(scales) else None
@@ -217,7 +220,7 @@ def run_events(cfg: EventsConfig, progress=True):
     """:func:`build_events` with ``cfg.nproc`` workers from sotodlib's executor; None on an
     MPI worker rank (it served units until rank 0 finished)."""
     pool, as_completed = executor(cfg.nproc)
-    if pool is None and cfg.nproc > 1:
+    if is_worker_rank(pool, cfg.nproc):
         return None
     try:
         return build_events(cfg, progress=progress, pool=pool, as_completed=as_completed)

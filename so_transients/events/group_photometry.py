@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import traceback
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -24,6 +25,7 @@ from ..find import FindConfig, searchable_scans
 from ..fit import FitConfig, FitInputs, fit_window, measure_error_scale
 from ..forced_photometry import PhotometryConfig, group_crossings, measure_crossings
 from ..scan_geometry import constant_velocity
+from ..site import read_config
 
 #: Columns of a unit's ECSV file, beside the event id (all of the lightcurves table's that
 #: a group knows; the rest are added when the units are combined).
@@ -52,7 +54,10 @@ class GroupJob:
         return f"{self.obs_id} {'/'.join(str(v) for v in self.tags.values())}"
 
     def digest(self) -> str:
+        """Of everything the result depends on: the settings, the events, the archive file's
+        stamp and the site config's content (its process() steps rebuild the data)."""
         payload = {k: v for k, v in asdict(self).items() if k != "out"}
+        payload["preprocess"] = read_config(self.preprocess)
         return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str)
                               .encode()).hexdigest()[:16]
 
@@ -76,9 +81,16 @@ def run_job(job: GroupJob) -> dict:
         status["traceback"] = traceback.format_exc()
         return status
     table.meta.update(digest=job.digest(), obs_id=job.obs_id, tags=dict(job.tags))
-    Path(job.out).parent.mkdir(parents=True, exist_ok=True)
-    table.write(job.out, format="ascii.ecsv", overwrite=True)
-    np.savez_compressed(tracks_path(job.out), **tracks)
+    out = Path(job.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    # the tracks first, and each file complete before it gets its name: an interrupted
+    # unit never looks finished
+    partial = tracks_path(out).with_name(tracks_path(out).name + ".partial.npz")
+    np.savez_compressed(partial, **tracks)
+    os.replace(partial, tracks_path(out))
+    partial = out.with_name(out.name + ".partial")
+    table.write(partial, format="ascii.ecsv", overwrite=True)
+    os.replace(partial, out)
     return status
 
 
@@ -125,11 +137,15 @@ def measure_group(job: GroupJob):
     rows, tracks = [], {}
     for band in np.unique(bands):
         band_dets = np.flatnonzero(bands == band)
-        scale = job.error_scale or measure_error_scale(data, band_dets, [], job.fit)
         reach = 3 * float(np.median(data.beam_sigma[band_dets]))
-        for ev in job.events:
-            times, scans = group_crossings(data, scan, ev["ra"], ev["dec"], ev["t_lo"],
-                                           ev["t_hi"], band_dets, reach)
+        crossings = [group_crossings(data, scan, ev["ra"], ev["dec"], ev["t_lo"], ev["t_hi"],
+                                     band_dets, reach) for ev in job.events]
+        # transient_fit's scale for this group, else its fixed one, else measured as it
+        # measures it, away from every crossing of the events
+        scale = job.error_scale or job.fit.error_scale or measure_error_scale(
+            data, band_dets, np.concatenate([c[0] for c in crossings] + [np.zeros(0)]),
+            job.fit)
+        for ev, (times, scans) in zip(job.events, crossings):
             res = measure_crossings(data, ev["ra"], ev["dec"], times, band_dets, scale,
                                     job.fit, job.photometry)
             keep = res.pop("keep")

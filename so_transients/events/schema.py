@@ -25,7 +25,8 @@ EVENTS = (
     Column("name", "str", None, _E, "SOTR Jhhmmss.s+ddmmss: from the event's position"),
     Column("ra", "float", "deg", _E, "inverse-variance weighted RA of its detections"),
     Column("dec", "float", "deg", _E, "weighted Dec of its detections"),
-    Column("pos_err", "float", "arcsec", _E, "one-axis error of the weighted position"),
+    Column("pos_err", "float", "arcsec", _E, "one-axis statistical error of the weighted "
+                                             "position (no pointing systematic)"),
     Column("t_first", "float", "s", _E, "ctime of the first detection's peak sample"),
     Column("t_last", "float", "s", _E, "ctime of the last detection's peak sample"),
     Column("t_first_utc", "str", None, _E, "t_first as ISO UTC"),

@@ -137,7 +137,7 @@ def _multiband(lc: Table, bands_detected):
     return joint, single
 
 
-def complete_events(events: Table, lightcurves: Table, min_snr=3.0) -> Table:
+def complete_events(events: Table, lightcurves: Table, min_snr) -> Table:
     """``events`` with the columns the light curves give (a new table)."""
     cols = {name: list(events[name]) for name in events.colnames}
     for i, ev in enumerate(events):

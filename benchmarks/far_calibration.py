@@ -29,7 +29,8 @@ from sotodlib.preprocess import Pipeline  # noqa: E402
 
 import so_transients  # noqa: E402,F401  registers the steps and the loader
 from so_transients import pointing  # noqa: E402
-from so_transients.coherent import false_alarm_rate, local_maxima, measured_scale  # noqa: E402
+from so_transients.coherent import (false_alarm_rate, largest_share,  # noqa: E402
+                                    local_maxima, measured_scale)
 from so_transients.find import FindConfig, searchable_scans  # noqa: E402
 from so_transients.scan_geometry import constant_velocity, sample_rate  # noqa: E402
 from so_transients.significance import (SignificanceConfig, scan_geometry,  # noqa: E402
@@ -65,14 +66,15 @@ def maps_of(aman, cfg):
     sigma = np.asarray(f.sigma_amp)[dets]
     beam = float(np.median(np.asarray(f.beam_sigma)[dets]))
     rng = np.random.default_rng(cfg.seed)
-    out = []
+    out, snrs = [], []
     for s in np.unique(scan[scan >= 0]):
         samples = np.flatnonzero(scan == s)
         geometry = scan_geometry(t, q, xi, eta, samples, sample_rate(t))
         snr = np.asarray(aman.transient_snr[dets, samples[0]:samples[-1] + 1])
         out.append(scan_maps(snr, geometry, beam, sigma, np.ones(len(dets), bool),
                              samples[0], cfg, rng))
-    return out, beam
+        snrs.append(snr)
+    return out, beam, snrs, [sigma] * len(out)
 
 
 def main(argv=None):
@@ -89,7 +91,7 @@ def main(argv=None):
           f"{time.perf_counter() - t0:.0f} s", flush=True)
     cfg = SignificanceConfig(n_slides=args.slides, background_floor=2.0)
     t1 = time.perf_counter()
-    maps, beam = maps_of(aman, cfg)
+    maps, beam, snrs, sigmas = maps_of(aman, cfg)
     elapsed = time.perf_counter() - t1
     scale = float(np.median([s for m in maps for s in m.slide_scale]))
     data_scale = float(np.median([measured_scale(m.z) for m in maps]))
@@ -97,10 +99,13 @@ def main(argv=None):
     live_bg = sum(m.live_s for m in maps) / 3600.0
     live_data = live_bg / args.slides
     data_max = []
-    for m in maps:
+    for m, snr, sigma in zip(maps, snrs, sigmas):
         window = max(1, int(m.geometry.sample_rate * beam / m.geometry.speed))
         r, s = local_maxima(m.z, 2.0 * data_scale, window)
-        data_max.extend(m.z[r, s] / data_scale)
+        # as for the background: maxima one detector makes are left out
+        keep = largest_share(snr, m.geometry, m.rows, beam, sigma, np.ones(len(sigma), bool),
+                             r, s) <= cfg.max_single_share
+        data_max.extend(m.z[r[keep], s[keep]] / data_scale)
     data_max = np.asarray(data_max)
     print(f"maps: {elapsed:.0f} s for {len(maps)} scans x (1 + {args.slides} slides); "
           f"Z spread: data {data_scale:.3f}, slides {scale:.3f} (ratio "

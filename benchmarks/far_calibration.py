@@ -8,7 +8,8 @@ standard steps and ``transient_filter``, then for every scan computes the cohere
 Z of every position (:mod:`so_transients.coherent`) on the data and on ``--slides`` time
 slides, as ``transient_significance`` does. If the slides model the data's noise, the number
 of the data map's local maxima with Z >= z equals far(z) x the data's live time for every z
-(Poisson errors). Each map is in units of its own measured spread, as
+(Poisson errors); the sign-inverted data's maxima (noise with every correlation kept, no
+source) are a second model over the same live time. Each map is in units of its own measured spread, as
 ``transient_significance`` normalizes them: time slides remove the correlation of
 neighbouring detectors, so the data's spread is wider than the slides'. Prints the
 comparison and both spreads, and optionally plots it.
@@ -77,6 +78,21 @@ def maps_of(aman, cfg):
     return out, beam, snrs, [sigma] * len(out)
 
 
+def maxima(maps, snrs, sigmas, beam, scale, cfg, sign):
+    """Z of the local maxima of ``sign`` x each data map (-1: the sign-inverted data, whose
+    maxima are noise with all its correlations and no source), in units of ``scale``; as
+    for the background, maxima one detector makes are left out."""
+    out = []
+    for m, snr, sigma in zip(maps, snrs, sigmas):
+        window = max(1, int(m.geometry.sample_rate * beam / m.geometry.speed))
+        z = sign * m.z
+        r, s = local_maxima(z, 2.0 * scale, window)
+        keep = largest_share(sign * snr, m.geometry, m.rows, beam, sigma,
+                             np.ones(len(sigma), bool), r, s) <= cfg.max_single_share
+        out.extend(z[r[keep], s[keep]] / scale)
+    return np.asarray(out)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=30.0)
@@ -98,32 +114,29 @@ def main(argv=None):
     background = np.concatenate([np.asarray(m.background) for m in maps]) / scale
     live_bg = sum(m.live_s for m in maps) / 3600.0
     live_data = live_bg / args.slides
-    data_max = []
-    for m, snr, sigma in zip(maps, snrs, sigmas):
-        window = max(1, int(m.geometry.sample_rate * beam / m.geometry.speed))
-        r, s = local_maxima(m.z, 2.0 * data_scale, window)
-        # as for the background: maxima one detector makes are left out
-        keep = largest_share(snr, m.geometry, m.rows, beam, sigma, np.ones(len(sigma), bool),
-                             r, s) <= cfg.max_single_share
-        data_max.extend(m.z[r[keep], s[keep]] / data_scale)
-    data_max = np.asarray(data_max)
+    data_max = maxima(maps, snrs, sigmas, beam, data_scale, cfg, sign=1)
+    inverted_max = maxima(maps, snrs, sigmas, beam, data_scale, cfg, sign=-1)
     print(f"maps: {elapsed:.0f} s for {len(maps)} scans x (1 + {args.slides} slides); "
           f"Z spread: data {data_scale:.3f}, slides {scale:.3f} (ratio "
           f"{data_scale / scale:.3f}); live time: data {live_data:.2f} h, background "
           f"{live_bg:.1f} h")
-    print(f"\n{'Z >=':>6}{'data maxima':>13}{'expected (slides)':>19}{'pull':>7}")
+    print(f"\n{'Z >=':>6}{'data maxima':>13}{'inverted data':>15}{'expected (slides)':>19}"
+          f"{'pull':>7}")
     levels = np.arange(3.0, 7.01, 0.5)
     expected = false_alarm_rate(levels, background, live_bg) * live_data
     observed = np.array([np.sum(data_max >= z) for z in levels])
-    for z, n, e in zip(levels, observed, expected):
-        print(f"{z:>6.1f}{n:>13d}{e:>19.1f}{(n - e) / np.sqrt(max(e, 1)):>7.1f}")
+    inverted = np.array([np.sum(inverted_max >= z) for z in levels])
+    for z, n, i, e in zip(levels, observed, inverted, expected):
+        print(f"{z:>6.1f}{n:>13d}{i:>15d}{e:>19.1f}{(n - e) / np.sqrt(max(e, 1)):>7.1f}")
     if args.plot:
         import matplotlib
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
         fig, ax = plt.subplots(figsize=(6, 4))
-        ax.errorbar(levels, observed, np.sqrt(np.maximum(observed, 1)), fmt="o",
+        ax.errorbar(levels, observed, np.sqrt(observed), fmt="o",
                     label="data: local maxima of Z")
+        ax.plot(levels, np.where(inverted > 0, inverted, np.nan), "s", mfc="none",
+                label="sign-inverted data (no source, same correlations)")
         ax.plot(levels, expected, "-", label="far(Z) x live time (time slides)")
         ax.set_yscale("log")
         ax.set_xlabel("Z")

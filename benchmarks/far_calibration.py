@@ -32,8 +32,8 @@ import so_transients  # noqa: E402,F401  registers the steps and the loader
 from so_transients import pointing  # noqa: E402
 from so_transients.coherent import (false_alarm_rate, largest_share,  # noqa: E402
                                     local_maxima, measured_scale)
-from so_transients.find import FindConfig, searchable_scans  # noqa: E402
-from so_transients.scan_geometry import constant_velocity, sample_rate  # noqa: E402
+from so_transients.find import FindConfig, group_scans  # noqa: E402
+from so_transients.scan_geometry import sample_rate  # noqa: E402
 from so_transients.significance import (SignificanceConfig, scan_geometry,  # noqa: E402
                                         scan_maps)
 from so_transients.sim.config import SimConfig  # noqa: E402
@@ -58,7 +58,7 @@ def filtered_group(minutes, tmp, seed):
 
 def maps_of(aman, cfg):
     t, az, el = np.asarray(aman.timestamps), aman.boresight.az, aman.boresight.el
-    scan, _ = searchable_scans(constant_velocity(t, az, el, 0.1), t, az, FindConfig())
+    scan, _ = group_scans(t, az, el, FindConfig())
     f = aman.transient_filter
     live = ~np.asarray(f.dead, bool)
     dets = np.flatnonzero(live)

@@ -23,7 +23,7 @@ from scipy import ndimage
 from . import candidates
 from .angles import ARCMIN, mean_direction, tangent_offsets
 from .dbscan import dbscan_labels
-from .scan_geometry import samples_in
+from .scan_geometry import constant_velocity, samples_in
 from .step_config import positive
 
 log = logging.getLogger(__name__)
@@ -202,6 +202,13 @@ def searchable_scans(at_speed, timestamps, az, cfg: FindConfig):
     if n_buf and skip.any():
         skip = ndimage.maximum_filter1d(skip.view(np.uint8), 2 * n_buf + 1).astype(bool)
     return scan_segments(skip, np.asarray(az))
+
+
+def group_scans(timestamps, az, el, cfg: FindConfig, where=""):
+    """:func:`searchable_scans` of a group's boresight: the scans ``transient_find``
+    searches, for the steps and commands that need them again."""
+    at_speed = constant_velocity(timestamps, az, el, cfg.speed_tolerance, where)
+    return searchable_scans(at_speed, timestamps, az, cfg)
 
 
 def find_group_candidates(snr, timestamps, scan, directions, radec, bands, wafers, eps_by_band,

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import multiprocessing
+import os
 
 from tqdm.auto import tqdm
 
@@ -18,8 +19,6 @@ MPI_SIZE_VARIABLES = ("OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "PMIX_SIZE")
 
 def under_mpi() -> bool:
     """Whether this process is one of several MPI ranks (from the launcher's variables)."""
-    import os
-
     return any(int(os.environ.get(k, "1") or 1) > 1 for k in MPI_SIZE_VARIABLES)
 
 

@@ -27,7 +27,7 @@ from . import candidates, pointing, scan_geometry, slot_storage
 from .bands import fwhm_to_sigma, sigma_fwhm_by_band
 from .candidates import CAND_AXIS, HIT_AXIS
 from .cuts import CutsConfig, cut_group_candidates, read_known_sources
-from .find import FindConfig, find_group_candidates, searchable_scans
+from .find import FindConfig, find_group_candidates, group_scans
 from .fit import SPEED_TOLERANCE, FitConfig, FitInputs, fit_group_candidates
 from .significance import SignificanceConfig, significance_by_band
 from .matched_filter import FilterConfig, matched_filter, response_kernels
@@ -284,10 +284,8 @@ class TransientFind(_Preprocess):
     def _scans(self, aman):
         if not aman.dets.count:
             return np.full(aman.samps.count, -1), np.zeros(0, int)
-        t, az, el = aman.timestamps, aman.boresight.az, aman.boresight.el
-        at_speed = scan_geometry.constant_velocity(t, az, el, self.cfg.speed_tolerance,
-                                                   str(GroupName(aman)))
-        return searchable_scans(at_speed, t, az, self.cfg)
+        return group_scans(aman.timestamps, aman.boresight.az, aman.boresight.el, self.cfg,
+                           str(GroupName(aman)))
 
     def calc_and_save(self, aman, proc_aman):
         require(aman, self.name)
@@ -449,10 +447,8 @@ class TransientSignificance(_Preprocess):
                         "(fewer than one false alarm expected in it): raise n_slides",
                         self.name, GroupName(aman), live, self.cfg.max_far)
         candidates.add_to_aman(cands, result, CAND_AXIS)
-        for name, value in (("significance_live_hours", live), ("significance_z_scale", scale)):
-            if name in cands._fields:
-                cands.move(name, None)
-            cands.wrap(name, value)
+        _replace(cands, "significance_live_hours", live)
+        _replace(cands, "significance_z_scale", scale)
         _save_candidates(self, proc_aman, aman, result)
         return aman, proc_aman
 

@@ -57,3 +57,16 @@ def fits_header(prov: dict) -> dict:
 def comment_lines(prov: dict) -> list:
     """``prov`` as ``key: value`` lines (CSV comments)."""
     return [f"{k}: {','.join(v) if isinstance(v, list) else v}" for k, v in prov.items()]
+
+
+def attach(table, fmt, prov: dict):
+    """Put ``prov`` in ``table``'s metadata as format ``fmt`` (astropy's name) carries it:
+    header keywords in FITS, ``# key: value`` comment lines in CSV, a ``provenance`` mapping
+    otherwise (ECSV). Returns the table."""
+    if fmt == "fits":
+        table.meta.update(fits_header(prov))
+    elif fmt == "ascii.csv":
+        table.meta["comments"] = comment_lines(prov)
+    else:
+        table.meta["provenance"] = prov
+    return table

@@ -31,7 +31,7 @@ from sotodlib import core
 from sotodlib.core.metadata import ManifestDb
 
 from . import candidates
-from .provenance import comment_lines, fits_header, provenance
+from .provenance import attach, provenance
 from .site import archive_index, check_config, errlog_entries, read_config
 from .slot_storage import unpack
 
@@ -216,6 +216,12 @@ def archive_status(archive_or_config) -> ArchiveStatus:
     return ArchiveStatus(index, config, archived, expected, failed)
 
 
+def utc(ctime) -> np.ndarray:
+    """ISO UTC strings of ctimes (seconds)."""
+    ctime = np.atleast_1d(np.asarray(ctime, np.float64))
+    return Time(ctime, format="unix").isot if len(ctime) else np.zeros(0, "U23")
+
+
 def with_readable_columns(table: Table) -> Table:
     """A copy with ``ra_deg``, ``dec_deg`` (deg), ``ra_err_arcsec``, ``dec_err_arcsec``
     (arcsec) after ``dec_err`` and ``t_peak_utc`` (ISO UTC) after ``t_peak``; the radian and
@@ -229,9 +235,8 @@ def with_readable_columns(table: Table) -> Table:
     for i, (name, src, unit, scale, text) in enumerate(derived):
         values = np.degrees(np.asarray(out[src], np.float64)) * scale
         out.add_column(Column(values, name=name, unit=unit, description=text), index=at + i)
-    utc = Time(np.asarray(out["t_peak"], np.float64), format="unix").isot if len(out) \
-        else np.zeros(0, "U23")
-    out.add_column(Column(utc, name="t_peak_utc", description="t_peak as ISO UTC"),
+    out.add_column(Column(utc(out["t_peak"]), name="t_peak_utc",
+                          description="t_peak as ISO UTC"),
                    index=out.colnames.index("t_peak") + 1)
     return out
 
@@ -263,14 +268,7 @@ def write_table(table: Table, path, config=None, obs_ids=None, overwrite=False) 
     path = Path(path)
     fmt = output_format(path, overwrite)
     obs_ids = table["obs_id"] if obs_ids is None else obs_ids
-    prov = provenance(config, obs_ids)
-    out = with_readable_columns(table)
-    if fmt == "fits":
-        out.meta.update(fits_header(prov))
-    elif fmt == "ascii.csv":
-        out.meta["comments"] = comment_lines(prov)
-    else:
-        out.meta["provenance"] = prov
+    out = attach(with_readable_columns(table), fmt, provenance(config, obs_ids))
     path.parent.mkdir(parents=True, exist_ok=True)
     extra = {"comment": "# "} if fmt == "ascii.csv" else {}
     out.write(path, format=fmt, overwrite=overwrite, **extra)

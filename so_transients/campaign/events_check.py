@@ -27,14 +27,13 @@ import yaml
 from astropy.table import Table
 
 from ..angles import ARCMIN, sky_separation
-from ..bands import CENTER_GHZ, FLAVOR_BANDS
+from ..bands import FLAVOR_BANDS
 from ..events.command import run_events
 from ..events.config import load_events_config
 from ..lightcurve import active_window
 from ..robust import mad_std
 from ..sim.config import SimConfig
 from ..sim.simulate import simulate
-from ..sim.sources import REFERENCE_GHZ
 from ..site import failed_groups, run_site_pipeline, write_site_config
 from .full_check import site_processes
 
@@ -120,8 +119,9 @@ def events_per_flare(matches, flares: Table) -> Table:
                       max_events_per_flare=[int(n.max(initial=0))]))
 
 
-def recovery_table(events, fits, flares, matches) -> Table:
-    """Per rise-time bin: eq. 1 fits of the events matching exactly one flare, against it."""
+def recovery_table(events, fits, flares, matches, peaks) -> Table:
+    """Per rise-time bin: eq. 1 fits of the events matching exactly one flare, against it;
+    ``peaks``: {(source_id, band): the flare's injected peak in that band}."""
     rows = []
     pairs = [(i, int(np.flatnonzero(matches[i])[0])) for i in range(len(events))
              if matches[i].sum() == 1]
@@ -136,7 +136,7 @@ def recovery_table(events, fits, flares, matches) -> Table:
                 alpha.append(a - fl["spectral_index"])
             mine = fits[(fits["event_id"] == events["event_id"][i]) & fits["fit_ok"]]
             for fit in mine:
-                s_true = fl["s_peak"] * _band_scale(fl, fit["bandpass"])
+                s_true = peaks[(int(fl["source_id"]), str(fit["bandpass"]))]
                 flux.append(fit["s_peak"] / s_true)
                 dt.append(fit["t_peak"] - fl["t_peak"])
                 dur.append((fit["t_rise"] + fit["t_decay"]) / (fl["t_rise"] + fl["t_decay"]))
@@ -147,11 +147,6 @@ def recovery_table(events, fits, flares, matches) -> Table:
                          n_alpha=len(alpha), alpha_bias=_median(alpha),
                          alpha_scatter=_scatter(alpha)))
     return Table(rows=rows)
-
-
-def _band_scale(flare, band):
-    """The flare's peak in ``band`` over its ``s_peak`` (given at the reference frequency)."""
-    return (CENTER_GHZ[band] / REFERENCE_GHZ) ** flare["spectral_index"]
 
 
 def _median(values):
@@ -196,7 +191,9 @@ def run_events_check(cfg: EventsCheckConfig, progress=True) -> Path:
     results = cfg.output / "results"
     results.mkdir(parents=True, exist_ok=True)
     tables = dict(events_per_flare=events_per_flare(matches, flares),
-                  lightcurve_recovery=recovery_table(events, fits, flares, matches),
+                  lightcurve_recovery=recovery_table(
+                      events, fits, flares, matches,
+                      {(int(r["source_id"]), str(r["band"])): float(r["s_peak"]) for r in truth}),
                   false_events=false_event_table(events, matches, noise_events, flares, hours,
                                                  cfg.joint_snr_min))
     for name, table in tables.items():

@@ -36,8 +36,8 @@ from astropy.table import Table, vstack
 from tqdm.auto import tqdm
 
 from ..parallel import executor, is_worker_rank, run_all
-from ..provenance import fits_header, provenance
-from ..results import archive_entries, archive_status, archive_table
+from ..provenance import attach, provenance
+from ..results import archive_entries, archive_status, archive_table, output_format
 from ..site import archive_index
 from .config import EventsConfig, load_events_config
 from .group_photometry import GroupJob, run_job, tracks_path
@@ -103,10 +103,10 @@ def make_jobs(cfg: EventsConfig, events: Table, cands: Table, out: Path) -> list
     spans = obs_spans(cfg.preprocess)
     pc = cfg.photometry
     fit, find = cfg.fit, cfg.find
+    lo, hi = events["t_first"] - pc.before_s, events["t_last"] + pc.after_s
     jobs = []
     for obs_id, tags, filename, dataset in archive_entries(archive_index(cfg.preprocess)):
         start, stop = spans.get(obs_id, (-np.inf, np.inf))
-        lo, hi = events["t_first"] - pc.before_s, events["t_last"] + pc.after_s
         mine = np.flatnonzero((hi >= start) & (lo <= stop))
         if not len(mine):
             continue
@@ -121,13 +121,8 @@ def make_jobs(cfg: EventsConfig, events: Table, cands: Table, out: Path) -> list
 
 
 def write(table: Table, path: Path, prov: dict):
-    """ECSV (provenance in the metadata) or FITS (provenance as header keywords)."""
-    out = table.copy()
-    if path.suffix == ".fits":
-        out.meta.update(fits_header(prov))
-    else:
-        out.meta["provenance"] = prov
-    out.write(path, overwrite=True)
+    """ECSV or FITS (by the suffix) with the provenance in the metadata."""
+    attach(table.copy(), output_format(path, overwrite=True), prov).write(path, overwrite=True)
 
 
 def collect_units(statuses) -> Table:

@@ -21,10 +21,9 @@ import numpy as np
 from astropy.table import Table
 
 from .. import pointing
-from ..find import FindConfig, searchable_scans
+from ..find import FindConfig, group_scans
 from ..fit import FitConfig, FitInputs, fit_window, measure_error_scale
 from ..forced_photometry import PhotometryConfig, group_crossings, measure_crossings
-from ..scan_geometry import constant_velocity
 from ..site import read_config
 
 #: Columns of a unit's ECSV file, beside the event id (all of the lightcurves table's that
@@ -128,9 +127,8 @@ def measure_group(job: GroupJob):
     crossing of the group, and for each event the detector tracks of its best crossing."""
     aman = load_group(job)
     data = FitInputs.from_aman(aman, speed_tolerance=job.find.speed_tolerance)
-    t, az, el = aman.timestamps, aman.boresight.az, aman.boresight.el
-    at_speed = constant_velocity(t, az, el, job.find.speed_tolerance, job.name)
-    scan, _ = searchable_scans(at_speed, t, az, job.find)
+    scan, _ = group_scans(aman.timestamps, aman.boresight.az, aman.boresight.el, job.find,
+                          job.name)
     bands = np.asarray(aman.transient_filter.bandpass).astype(str)
     wafers = (np.asarray(aman.det_info.wafer_slot).astype(str)
               if "wafer_slot" in aman.det_info._fields else np.full(aman.dets.count, ""))

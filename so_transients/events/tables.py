@@ -12,19 +12,14 @@ import astropy.units as u
 import numpy as np
 from astropy.coordinates import SkyCoord
 from astropy.table import Table
-from astropy.time import Time
 
 from ..angles import ARCSEC
 from ..association import AssociationConfig, link, position_sigma, weighted_position
 from ..bands import FLAVOR_BANDS
 from ..candidates import typed_table
 from ..lightcurve_fit import FLARE_PARAMS, FlareFitConfig, fit_flare, spectral_index
+from ..results import utc
 from . import schema
-
-
-def utc(ctime) -> np.ndarray:
-    ctime = np.atleast_1d(np.asarray(ctime, float))
-    return Time(ctime, format="unix").isot if len(ctime) else np.zeros(0, "U23")
 
 
 def event_name(ra_deg, dec_deg) -> str:
@@ -122,11 +117,11 @@ def _simultaneous(lc: Table, band_a, band_b):
     return np.array([a[k] for k in common], int), np.array([b[k] for k in common], int)
 
 
-def _multiband(lc: Table, bands_detected):
-    """``(joint_snr, single_band)`` of one event from its light curve."""
+def _multiband(lc: Table, pairs, bands_detected):
+    """``(joint_snr, single_band)`` of one event from its light curve; ``pairs``:
+    {(band_a, band_b): :func:`_simultaneous` rows} for each wafer flavour's two bands."""
     joint, single = np.nan, False
-    for band_a, band_b in FLAVOR_BANDS.values():
-        ia, ib = _simultaneous(lc, band_a, band_b)
+    for (band_a, band_b), (ia, ib) in pairs.items():
         if not len(ia):
             continue
         seen = np.asarray(lc["detected"][ia], bool) | np.asarray(lc["detected"][ib], bool)
@@ -144,9 +139,10 @@ def complete_events(events: Table, lightcurves: Table, min_snr) -> Table:
         lc = lightcurves[lightcurves["event_id"] == ev["event_id"]]
         cols["n_crossings"][i] = len(lc)
         cols["n_upper_limits"][i] = int(np.isfinite(lc["upper_limit"]).sum())
-        cols["joint_snr"][i], cols["single_band"][i] = _multiband(lc, ev["bands"].split(","))
-        for (band_a, band_b), name in zip(FLAVOR_BANDS.values(), ("alpha_mf", "alpha_uhf")):
-            ia, ib = _simultaneous(lc, band_a, band_b)
+        pairs = {bands: _simultaneous(lc, *bands) for bands in FLAVOR_BANDS.values()}
+        cols["joint_snr"][i], cols["single_band"][i] = _multiband(lc, pairs,
+                                                                  ev["bands"].split(","))
+        for ((band_a, band_b), (ia, ib)), name in zip(pairs.items(), ("alpha_mf", "alpha_uhf")):
             cols[name][i], cols[f"{name}_err"][i], _ = spectral_index(
                 lc["flux"][ia], lc["flux_err"][ia], lc["flux"][ib], lc["flux_err"][ib],
                 band_a, band_b, min_snr)

@@ -63,6 +63,8 @@ SCHEMA = (
     Column("n_dets", "int", None, _F, "distinct detectors in the cluster"),
     Column("peak_det", "int", None, _F, "index (in the group) of the highest-S/N detector",
            saved=False),
+    Column("map_z", "float", None, _F, "coherent mode: Z of the map maximum, in units of the "
+                                       "scan's measured spread (NaN in paper mode)"),
     Column("pass_n_dets", "bool", None, _C, "enough detectors (min_dets)"),
     Column("pass_aspect_ratio", "bool", None, _C, "detectors form a line along the scan"),
     Column("pass_time_order", "bool", None, _C, "hit times follow a source drifting across"),

@@ -29,6 +29,9 @@ from .step_config import positive
 log = logging.getLogger(__name__)
 
 
+MODES = ("paper", "coherent")
+
+
 @dataclass
 class FindConfig:
     snr_threshold: float = 3.0
@@ -40,12 +43,23 @@ class FindConfig:
     speed_tolerance: float = 0.1      # samples scanning further off the nominal speed ...
     turnaround_buffer: float = 0.0    # ... and this many s around them are not searched
     archive_slots: int = 4            # catalogue cells per detector in the archive
+    mode: str = "paper"               # "paper": S/N >= 3 clusters; "coherent": maxima of Z
+    coherent_threshold: float = 4.5   # coherent mode: Z of a maximum, in measured spreads
+    row_step: float = 0.8             # ... beam sigmas between rows of positions
+    max_single_share: float = 0.5     # ... veto: one detector makes more of the sum
+    max_instant_share: float = 0.5    # ... veto: detectors crossed at one instant make more
+    hit_reach: float = 2.0            # ... hits: detectors within this many beam sigmas
 
     def __post_init__(self):
         positive("transient_find", dbscan_min_samples=self.dbscan_min_samples,
                  min_cluster_samples=self.min_cluster_samples, min_dets=self.min_dets,
                  max_candidates=self.max_candidates, speed_tolerance=self.speed_tolerance,
-                 archive_slots=self.archive_slots, eps_arcmin=self.eps_arcmin)
+                 archive_slots=self.archive_slots, eps_arcmin=self.eps_arcmin,
+                 coherent_threshold=self.coherent_threshold, row_step=self.row_step,
+                 max_single_share=self.max_single_share,
+                 max_instant_share=self.max_instant_share, hit_reach=self.hit_reach)
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {', '.join(MODES)}, got {self.mode!r}")
 
     @property
     def eps(self):
@@ -226,10 +240,23 @@ def find_group_candidates(snr, timestamps, scan, directions, radec, bands, wafer
         c, h = find_candidates(snr, timestamps, scan, directions,
                                lambda d, s, dets=dets: radec(dets[d], s), eps_by_band[band],
                                cfg, rows=dets, cap=False)
-        c["peak_det"], h["det"] = dets[c["peak_det"].astype(int)], dets[h["det"]]
-        c["bandpass"] = np.full(len(c["scan"]), band)
-        c["wafer_slot"] = np.asarray(wafers)[c["peak_det"]]
-        parts.append((c, h))
+        c["map_z"] = np.full(len(c["scan"]), np.nan)
+        parts.append(band_part(c, h, dets, band, wafers))
+    return merge_bands(parts, cap, where)
+
+
+def band_part(cands, hits, dets, band, wafers):
+    """One band's ``(candidates, hits)`` with detector indices counting in the group
+    (``dets``: the group indices of the rows they counted in), its band and wafer."""
+    cands["peak_det"], hits["det"] = dets[cands["peak_det"].astype(int)], dets[hits["det"]]
+    cands["bandpass"] = np.full(len(cands["scan"]), band)
+    cands["wafer_slot"] = np.asarray(wafers)[cands["peak_det"]]
+    return cands, hits
+
+
+def merge_bands(parts, cap, where=""):
+    """The bands' ``(candidates, hits)`` as one group's, at most ``cap`` candidates (highest
+    S/N), numbered, every ``transient_find`` column checked."""
     if not parts:
         return candidates.empty("transient_find"), candidates.empty_hits()
     cands, hits = {}, {}
@@ -246,14 +273,17 @@ def find_group_candidates(snr, timestamps, scan, directions, radec, bands, wafer
 
 
 def cap_candidates(cands, hits, max_candidates, where=""):
-    """Keep the ``max_candidates`` candidates of highest S/N (with a warning), renumbering hits."""
+    """Keep the ``max_candidates`` candidates of highest S/N (coherent mode: highest
+    ``map_z``) with a warning, renumbering hits."""
     n = len(cands["scan"])
     if n <= max_candidates:
         return cands, hits
     log.warning("%s%d candidates found, more than the cap of %d: keeping the %d with the "
                 "highest S/N (a glitch storm or a very bright source?)",
                 f"{where}: " if where else "", n, max_candidates, max_candidates)
-    keep = np.sort(np.argsort(-cands["snr_max"], kind="stable")[:max_candidates])
+    rank = cands.get("map_z")
+    rank = cands["snr_max"] if rank is None or not np.isfinite(rank).all() else rank
+    keep = np.sort(np.argsort(-rank, kind="stable")[:max_candidates])
     renumber = np.full(n, -1)
     renumber[keep] = np.arange(len(keep))
     cands = {k: v[keep] for k, v in cands.items()}

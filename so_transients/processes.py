@@ -26,6 +26,7 @@ from sotodlib.preprocess import Pipeline, _Preprocess
 from . import candidates, pointing, scan_geometry, slot_storage
 from .bands import fwhm_to_sigma, sigma_fwhm_by_band
 from .candidates import CAND_AXIS, HIT_AXIS
+from .coherent_find import coherent_group_candidates
 from .cuts import CutsConfig, cut_group_candidates, read_known_sources
 from .find import FindConfig, find_group_candidates, group_scans
 from .fit import SPEED_TOLERANCE, FitConfig, FitInputs, fit_group_candidates
@@ -272,7 +273,20 @@ class TransientFind(_Preprocess):
           speed_tolerance: 0.1            # leave out samples scanning >10% off nominal speed
           turnaround_buffer: 0.0          # s left out around those samples
           archive_slots: 4                # candidate cells per detector in the archive
+          mode: paper                     # or coherent (below)
+          coherent_threshold: 4.5         # coherent: maxima of Z at least this ...
+          row_step: 0.8                   # ... on rows this many beam sigmas apart
+          max_single_share: 0.5           # veto: one detector makes more of the sum
+          max_instant_share: 0.5          # veto: detectors crossed at one instant make more
+          hit_reach: 2.0                  # hits: detectors within this many beam sigmas
         save: true
+
+    ``mode: coherent`` replaces the S/N >= 3 clustering by the maxima of the coherent
+    statistic Z (every detector's S/N along a sky position's path across the wafer, weighted
+    by the beam and its noise; :mod:`so_transients.coherent_find`), in units of each scan's
+    measured spread; ``map_z`` holds it. The DBSCAN settings and ``min_cluster_samples`` are
+    then unused; ``min_dets`` is the fewest live detectors a band needs. The cuts and the fit
+    run unchanged on its candidates.
     """
 
     name = "transient_find"
@@ -300,9 +314,17 @@ class TransientFind(_Preprocess):
         xi, eta = aman.focal_plane.xi, aman.focal_plane.eta
         radec = lambda d, s: pointing.radec_of_samples(q, xi, eta, d, s)
         cap = min(self.cfg.max_candidates, aman.dets.count * self.cfg.archive_slots)
-        cands, hits = find_group_candidates(aman.transient_snr, aman.timestamps, scan,
-                                            directions, radec, bands, wafers, eps, self.cfg,
-                                            cap, str(GroupName(aman)))
+        if self.cfg.mode == "coherent":
+            f = aman.transient_filter
+            cands, hits = coherent_group_candidates(
+                aman.transient_snr, np.asarray(aman.timestamps), q, np.asarray(xi),
+                np.asarray(eta), scan, directions, bands, wafers, ~np.asarray(f.dead, bool),
+                np.asarray(f.sigma_amp), np.asarray(f.beam_sigma), self.cfg, cap,
+                str(GroupName(aman)))
+        else:
+            cands, hits = find_group_candidates(aman.transient_snr, aman.timestamps, scan,
+                                                directions, radec, bands, wafers, eps,
+                                                self.cfg, cap, str(GroupName(aman)))
         table = candidates.to_aman(cands, CAND_AXIS, len(cands["scan"]))
         table.wrap(SLOTS, int(self.cfg.archive_slots))
         table.wrap(MIN_DETS, int(self.cfg.min_dets))

@@ -1,0 +1,183 @@
+"""The coherent detection mode of ``transient_find``: maxima of the coherent statistic Z.
+
+The paper's search (:mod:`so_transients.find`) uses a detector only where it alone clears
+S/N 3. The coherent mode instead adds every detector's filtered S/N along the path a sky
+position takes across the wafer, weighted by the beam across the scan and by its noise
+(:func:`so_transients.coherent.coherent_map`): the maximum-likelihood detection statistic of
+a source steady during one crossing. For each scan of each band, Z is evaluated on rows of
+positions ``row_step`` beam sigmas apart and at every sample, in units of the map's own
+measured spread (residual atmosphere correlates detectors, so it is not 1); its local maxima
+at least ``coherent_threshold`` become candidates, the strongest of any that lie within two
+beam sigmas across and three beam-crossing times along of each other.
+
+Two vetoes remove what is not a source crossing before the cuts see it:
+
+- ``max_single_share``: one detector makes more than this share of the maximum's sum (a
+  glitch or cosmic ray on one detector);
+- ``max_instant_share``: more than this share of its positive sum comes from detectors the
+  position crosses within four beam-crossing times (beam sigma / drift speed: the width of
+  the filtered response to a glitch) of each other, i.e. from one instant (a
+  glitch or readout jump on many detectors at once; a source's sum is spread over the whole
+  crossing).
+
+A candidate's hits (``transient_hits``) are the samples the sum used: each detector within
+``hit_reach`` beam sigmas across, at the sample the position crosses it. The cuts and the
+beam fit then run unchanged.
+
+Everything here is on arrays (a group's S/N, boresight quaternions, focal plane); no
+AxisManager.
+"""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from . import candidates, pointing
+from .coherent import coherent_map, local_maxima, measured_scale, row_offsets, row_weights
+from .find import CLUSTER_FIELDS, band_part, merge_bands
+from .scan_geometry import sample_rate as rate_of
+from .significance import scan_geometry
+
+log = logging.getLogger(__name__)
+
+#: "One instant": within this many beam-crossing times (beam sigma / drift speed), the width
+#: of the matched filter's response to a glitch, which the filter gives the template's shape.
+INSTANT = 4
+
+
+def sky_position(geometry, across, bore_q, sample):
+    """RA, Dec (rad) of the sky position at cross-scan offset ``across`` that passes the
+    wafer's centre at ``sample``."""
+    (ux, uy), (x0, y0) = geometry.direction, geometry.centre
+    ra, dec = pointing.radec_of_samples(bore_q, [x0 - across * uy], [y0 + across * ux], [0],
+                                        [sample])
+    return float(ra[0]), float(dec[0])
+
+
+def suppress_neighbours(z_peaks, rows, samples, row_reach, time_reach):
+    """Indices (strongest first) of the maxima not within ``row_reach`` rows and
+    ``time_reach`` samples of a stronger one kept."""
+    kept = []
+    for k in np.argsort(-np.asarray(z_peaks), kind="stable"):
+        if not any(abs(rows[k] - rows[j]) <= row_reach and abs(samples[k] - samples[j])
+                   <= time_reach for j in kept):
+            kept.append(k)
+    return np.asarray(kept, int)
+
+
+def shares(terms, lags, window):
+    """``(single, instant)``: the largest share one detector has of a maximum's sum (its
+    ``terms``), and the largest share of its positive sum from detectors crossed within
+    ``window`` samples of one instant (``lags``: when each is crossed)."""
+    total = terms.sum()
+    single = terms.max() / total if total > 0 else 1.0
+    positive = np.clip(terms, 0.0, None)
+    if positive.sum() <= 0:
+        return single, 1.0
+    order = np.argsort(lags)
+    lag, pos = lags[order], np.cumsum(positive[order])
+    hi = np.searchsorted(lag, lag + window, side="right") - 1
+    lo = np.searchsorted(lag, lag, side="left")
+    strip = pos[hi] - np.r_[0.0, pos][lo]
+    return float(single), float(strip.max() / positive.sum())
+
+
+def scan_candidates(snr, first, geometry, beam_sigma, sigma_amp, live, cfg):
+    """The maxima of one scan (``snr``: the band's live detectors over the scan's samples,
+    the scan starting at group sample ``first``): a list of dicts with the map position
+    (``row``, ``sample`` in the group), ``map_z``, the vetoes' shares, and ``hit_dets``,
+    ``hit_samples`` (rows of ``snr`` and group samples of the sum's terms)."""
+    rows = row_offsets(geometry, beam_sigma, cfg.row_step)
+    z, _ = coherent_map(snr, geometry, rows, beam_sigma, sigma_amp, live)
+    scale = measured_scale(z)
+    window = max(1, int(round(geometry.sample_rate * beam_sigma / geometry.speed)))
+    r, s = local_maxima(z, cfg.coherent_threshold * scale, window)
+    keep = suppress_neighbours(z[r, s], r, s, int(np.ceil(2.0 / cfg.row_step)), 3 * window)
+    weights, _ = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
+    lags = geometry.lag_samples
+    nsamp = snr.shape[1]
+    found = []
+    for k in keep:
+        dets = np.flatnonzero(weights[r[k]])
+        at = s[k] + lags[dets]
+        inside = (at >= 0) & (at < nsamp)
+        dets, at = dets[inside], at[inside]
+        terms = weights[r[k], dets] * np.nan_to_num(snr[dets, at])
+        single, instant = shares(terms, lags[dets], INSTANT * window)
+        if single > cfg.max_single_share or instant > cfg.max_instant_share:
+            continue
+        near = np.abs(geometry.across[dets] - rows[r[k]]) <= cfg.hit_reach * beam_sigma
+        near = near if near.any() else np.ones(len(dets), bool)
+        found.append(dict(row=rows[r[k]], sample=first + s[k], map_z=z[r[k], s[k]] / scale,
+                          hit_dets=dets[near], hit_samples=first + at[near],
+                          hit_snr=np.nan_to_num(snr[dets[near], at[near]])))
+    return found
+
+
+def band_candidates(snr, dets, timestamps, bore_q, xi, eta, scan, directions, sigma_amp,
+                    beam_sigma, sample_rate, cfg, where=""):
+    """``(candidates, hits)`` of one band of a group in coherent mode (columns
+    :data:`so_transients.find.CLUSTER_FIELDS` and ``map_z``; detector indices count in
+    ``dets``, the band's live detectors, rows of the group's ``snr``)."""
+    cands = {k: [] for k in (*CLUSTER_FIELDS, "map_z")}
+    hits = {k: [] for k in candidates.HIT_COLUMNS}
+    if len(dets) < cfg.min_dets:
+        log.warning("%s: %d live detectors, fewer than min_dets = %d: too few for a coherent "
+                    "search; no candidates", where, len(dets), cfg.min_dets)
+        return _arrays(cands, hits)
+    live = np.ones(len(dets), bool)
+    for k in np.unique(scan[scan >= 0]):
+        samples = np.flatnonzero(scan == k)
+        if len(samples) < 2:
+            continue
+        geometry = scan_geometry(timestamps, bore_q, xi, eta, samples, sample_rate)
+        block = np.asarray(snr[dets, samples[0]:samples[-1] + 1])
+        for peak in scan_candidates(block, samples[0], geometry, beam_sigma, sigma_amp, live,
+                                    cfg):
+            _add(cands, hits, peak, k, directions[k], geometry, bore_q, xi, eta, timestamps)
+    return _arrays(cands, hits)
+
+
+def _add(cands, hits, peak, scan, direction, geometry, bore_q, xi, eta, t):
+    cid = len(cands["scan"])
+    ra, dec = sky_position(geometry, peak["row"], bore_q, peak["sample"])
+    d, s, v = peak["hit_dets"], peak["hit_samples"], peak["hit_snr"]
+    best = int(np.argmax(v)) if len(v) else 0
+    times = t[s] if len(s) else t[[peak["sample"]]]
+    for key, value in (("scan", scan), ("direction", direction), ("cluster_ra", ra),
+                       ("cluster_dec", dec), ("t_median", t[peak["sample"]]),
+                       ("t_start", times.min()), ("t_stop", times.max()),
+                       ("t_peak", times[best]), ("snr_max", v[best] if len(v) else np.nan),
+                       ("n_samples", len(s)), ("n_dets", len(np.unique(d))),
+                       ("peak_det", d[best] if len(d) else -1), ("map_z", peak["map_z"])):
+        cands[key].append(value)
+    hit_ra, hit_dec = pointing.radec_of_samples(bore_q, xi, eta, d, s)
+    for key, value in (("det", d), ("samp", s), ("snr", v), ("ra", hit_ra), ("dec", hit_dec)):
+        hits[key].extend(value)
+    hits["cand"].extend([cid] * len(d))
+
+
+def _arrays(cands, hits):
+    cands = {k: np.asarray(v) for k, v in cands.items()}
+    hits = {k: np.asarray(v, dtype) for (k, v), dtype in zip(hits.items(),
+                                                             candidates.HIT_COLUMNS.values())}
+    return cands, hits
+
+
+def coherent_group_candidates(snr, timestamps, bore_q, xi, eta, scan, directions, bands, wafers,
+                              live, sigma_amp, beam_sigma, cfg, cap, where=""):
+    """Candidates of a whole group (every band of it) in coherent mode, at most ``cap`` of
+    them (highest ``map_z``): ``(candidates, hits)`` with every ``transient_find`` column,
+    detector indices counting in the group. ``live``, ``sigma_amp`` (mJy), ``beam_sigma``
+    (rad): per detector, from ``transient_filter``."""
+    sample_rate = rate_of(timestamps, where)
+    parts = []
+    for band in sorted(set(bands)):
+        dets = np.flatnonzero((bands == band) & live)
+        c, h = band_candidates(snr, dets, timestamps, bore_q, xi[dets], eta[dets], scan,
+                               directions, sigma_amp[dets], float(np.median(beam_sigma[dets]))
+                               if len(dets) else np.nan, sample_rate, cfg,
+                               f"{where}: band {band}" if where else f"band {band}")
+        parts.append(band_part(c, h, dets, band, wafers))
+    return merge_bands(parts, cap, where)

@@ -5,6 +5,7 @@
     python benchmarks/bench_chain.py --workers 2      # the filter's threads
     python benchmarks/bench_chain.py --json out.json  # also write the figures as JSON
     python benchmarks/bench_chain.py --significance-slides 20   # with transient_significance
+    python benchmarks/bench_chain.py --find-mode coherent       # transient_find's coherent mode
 
 Simulates the TOD (white noise, atmosphere, CMB, flares and glitches), loads it through its
 sotodlib Context, runs the standard steps of ``configs/preprocess_transients.yaml`` that come
@@ -63,14 +64,15 @@ def standard_steps():
     return steps[:[s["name"] for s in steps].index("transient_filter")]
 
 
-def pipeline_config(workers, significance_slides=0):
-    """The transient steps; with ``significance_slides``, transient_significance with that
-    many time slides before transient_fit (its cost is then printed against the floor)."""
+def pipeline_config(workers, significance_slides=0, find_mode="paper"):
+    """The transient steps (``transient_find`` in ``find_mode``); with
+    ``significance_slides``, transient_significance with that many time slides before
+    transient_fit (its cost is then printed against the floor)."""
     extra = ([{"name": "transient_significance", "calc": {"n_slides": significance_slides},
                "save": True}] if significance_slides else [])
     return [
         {"name": "transient_filter", "process": {"workers": workers}, "calc": True, "save": True},
-        {"name": "transient_find", "calc": {}, "save": True},
+        {"name": "transient_find", "calc": {"mode": find_mode}, "save": True},
         {"name": "transient_cuts", "calc": {}, "save": True},
         *extra,
         {"name": "transient_fit", "calc": {}, "save": True},
@@ -112,14 +114,14 @@ def clear_outputs(aman):
         aman.move(name, None)
 
 
-def run_chain(aman, workers, significance_slides=0):
+def run_chain(aman, workers, significance_slides=0, find_mode="paper"):
     clear_outputs(aman)
     logger = logging.getLogger("bench_chain.pipeline")
     logger.setLevel(logging.DEBUG)
     logger.propagate = False
     clock = StepClock()
     logger.handlers = [clock]
-    pipe = Pipeline(pipeline_config(workers, significance_slides), logger=logger)
+    pipe = Pipeline(pipeline_config(workers, significance_slides, find_mode), logger=logger)
     reset_peak_rss()
     start = time.perf_counter()
     proc = pipe.run(aman)
@@ -179,6 +181,8 @@ def main(argv=None):
     parser.add_argument("--json", metavar="PATH")
     parser.add_argument("--significance-slides", type=int, default=0, metavar="N",
                         help="also run transient_significance with N time slides")
+    parser.add_argument("--find-mode", choices=("paper", "coherent"), default="paper",
+                        help="transient_find's mode")
     parser.add_argument("--context", metavar="YAML",
                         help="benchmark the first observation of this dataset instead")
     args = parser.parse_args(argv)
@@ -197,12 +201,12 @@ def main(argv=None):
     signal_bytes = signal.nbytes
     chunk = FilterConfig().chunk_dets
     slides = args.significance_slides
-    run_chain(aman, args.workers, slides)         # warm-up: numba compilation, caches
+    run_chain(aman, args.workers, slides, args.find_mode)   # warm-up: numba, caches
     floors, chains, peaks = [], [], []
     for _ in range(args.repeats):
         floors.append(floor(signal, chunk))
         rss_before = rss("VmRSS")
-        steps, peak, proc = run_chain(aman, args.workers, slides)
+        steps, peak, proc = run_chain(aman, args.workers, slides, args.find_mode)
         chains.append(steps)
         peaks.append((peak, rss_before))
     cands = aman.transient_candidates
@@ -224,7 +228,7 @@ def report(args, aman, signal_bytes, floors, chains, peaks, reference, cands):
     peak, before = max(p for p, _ in peaks), min(b for _, b in peaks)
     result = {
         "ndet": aman.dets.count, "nsamp": aman.samps.count, "duration_s": round(duration, 1),
-        "workers": args.workers, "repeats": args.repeats,
+        "workers": args.workers, "repeats": args.repeats, "find_mode": args.find_mode,
         "signal_gb": round(signal_bytes / 1e9, 3),
         "floor_s": round(floor_s, 2),
         **{f"{k}_s": round(v, 2) for k, v in step_times.items()},

@@ -9,10 +9,14 @@ Z of every position (:mod:`so_transients.coherent`) on the data and on ``--slide
 slides, as ``transient_significance`` does. If the slides model the data's noise, the number
 of the data map's local maxima with Z >= z equals far(z) x the data's live time for every z
 (Poisson errors); the sign-inverted data's maxima (noise with every correlation kept, no
-source) are a second model over the same live time. Each map is in units of its own measured spread, as
+source) are a second model over the same live time. The data's maxima are counted less
+those the coherent mode's glitch vetoes remove. Each map is in units of its own measured spread, as
 ``transient_significance`` normalizes them: time slides remove the correlation of
 neighbouring detectors, so the data's spread is wider than the slides'. Prints the
-comparison and both spreads, and optionally plots it.
+comparison and both spreads; then gives every data maximum its ``far`` as the step gives a
+candidate's (the higher of the slides' and the inverted data's rate, the latter with its tail
+model beyond ``tail_from``) and checks the calibration: the number of data maxima with
+``far <= x`` should be ``x`` times the data's live time. Optionally plots both.
 """
 import argparse
 import logging
@@ -30,12 +34,13 @@ from sotodlib.preprocess import Pipeline  # noqa: E402
 
 import so_transients  # noqa: E402,F401  registers the steps and the loader
 from so_transients import pointing  # noqa: E402
-from so_transients.coherent import (false_alarm_rate, largest_share,  # noqa: E402
-                                    local_maxima, measured_scale)
+from so_transients.coherent import (false_alarm_rate, local_maxima,  # noqa: E402
+                                    measured_scale)
+from so_transients.coherent_find import vetoed  # noqa: E402
 from so_transients.find import FindConfig, group_scans  # noqa: E402
 from so_transients.scan_geometry import sample_rate  # noqa: E402
-from so_transients.significance import (SignificanceConfig, scan_geometry,  # noqa: E402
-                                        scan_maps)
+from so_transients.significance import (SignificanceConfig, inverted_rate,  # noqa: E402
+                                        scan_geometry, scan_maps)
 from so_transients.sim.config import SimConfig  # noqa: E402
 from so_transients.sim.simulate import simulate  # noqa: E402
 
@@ -78,19 +83,50 @@ def maps_of(aman, cfg):
     return out, beam, snrs, [sigma] * len(out)
 
 
-def maxima(maps, snrs, sigmas, beam, scale, cfg, sign):
-    """Z of the local maxima of ``sign`` x each data map (-1: the sign-inverted data, whose
-    maxima are noise with all its correlations and no source), in units of ``scale``; as
-    for the background, maxima one detector makes are left out."""
+def data_maxima(maps, snrs, sigmas, beam, scale):
+    """Z of the local maxima of each data map in units of ``scale``, less those the coherent
+    mode's glitch vetoes remove (maxima one detector makes, or detectors at one instant):
+    the maxima that could be candidates."""
     out = []
     for m, snr, sigma in zip(maps, snrs, sigmas):
         window = max(1, int(m.geometry.sample_rate * beam / m.geometry.speed))
-        z = sign * m.z
-        r, s = local_maxima(z, 2.0 * scale, window)
-        keep = largest_share(sign * snr, m.geometry, m.rows, beam, sigma,
-                             np.ones(len(sigma), bool), r, s) <= cfg.max_single_share
-        out.extend(z[r[keep], s[keep]] / scale)
+        r, s = local_maxima(m.z, 2.0 * scale, window)
+        keep = ~vetoed(snr, m.geometry, m.rows, beam, sigma, np.ones(len(sigma), bool), r, s,
+                       FindConfig(mode="coherent"))
+        out.extend(m.z[r[keep], s[keep]] / scale)
     return np.asarray(out)
+
+
+def calibration_plot(path, args, levels, observed, inverted, expected, combined, far_x,
+                     n_below, live_data):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4))
+    ax.errorbar(levels, observed, np.sqrt(observed), fmt="o", label="data: local maxima of Z")
+    ax.plot(levels, np.where(inverted > 0, inverted, np.nan), "s", mfc="none",
+            label="sign-inverted data (no source, same correlations)")
+    ax.plot(levels, expected, "-", label="far_slides(Z) x live time")
+    ax.plot(levels, combined, "--", label="far(Z) x live time (higher of slides, inverted)")
+    ax.set_yscale("log")
+    ax.set_xlabel("Z")
+    ax.set_ylabel("number with statistic >= Z")
+    ax.set_title(f"noise-only f090, {args.minutes:.0f} min of w16, {args.slides} slides")
+    ax.legend(fontsize=8)
+    expect = far_x * live_data
+    bx.fill_between(far_x, np.maximum(expect - 2 * np.sqrt(expect), 0.1),
+                    expect + 2 * np.sqrt(expect), alpha=0.3, label="x T +- 2 sqrt(x T)")
+    bx.plot(far_x, expect, "-", label="x T (calibrated)")
+    bx.plot(far_x, np.where(n_below > 0, n_below, np.nan), "o", label="data maxima, far <= x")
+    bx.set_xscale("log")
+    bx.set_yscale("log")
+    bx.set_xlabel("x: false alarms per wafer-band-hour")
+    bx.set_ylabel("number of data maxima with far <= x")
+    bx.set_title(f"calibration of far, T = {live_data:.2f} h")
+    bx.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print(f"figure: {path}")
 
 
 def main(argv=None):
@@ -114,38 +150,36 @@ def main(argv=None):
     background = np.concatenate([np.asarray(m.background) for m in maps]) / scale
     live_bg = sum(m.live_s for m in maps) / 3600.0
     live_data = live_bg / args.slides
-    data_max = maxima(maps, snrs, sigmas, beam, data_scale, cfg, sign=1)
-    inverted_max = maxima(maps, snrs, sigmas, beam, data_scale, cfg, sign=-1)
+    data_max = data_maxima(maps, snrs, sigmas, beam, data_scale)
+    inverted_max = np.concatenate([m.inverted for m in maps]) / data_scale
+    inverted_max = inverted_max[inverted_max >= 2.0]
     print(f"maps: {elapsed:.0f} s for {len(maps)} scans x (1 + {args.slides} slides); "
           f"Z spread: data {data_scale:.3f}, slides {scale:.3f} (ratio "
           f"{data_scale / scale:.3f}); live time: data {live_data:.2f} h, background "
           f"{live_bg:.1f} h")
-    print(f"\n{'Z >=':>6}{'data maxima':>13}{'inverted data':>15}{'expected (slides)':>19}"
-          f"{'pull':>7}")
+    # the far of the data's own maxima, as transient_significance gives a candidate's
+    far_slides = false_alarm_rate(data_max, background, live_bg)
+    far = np.fmax(far_slides, inverted_rate(data_max, inverted_max, live_data, cfg.tail_from))
     levels = np.arange(3.0, 7.01, 0.5)
     expected = false_alarm_rate(levels, background, live_bg) * live_data
+    combined = np.fmax(expected, inverted_rate(levels, inverted_max, live_data,
+                                               cfg.tail_from) * live_data)
     observed = np.array([np.sum(data_max >= z) for z in levels])
     inverted = np.array([np.sum(inverted_max >= z) for z in levels])
-    for z, n, i, e in zip(levels, observed, inverted, expected):
-        print(f"{z:>6.1f}{n:>13d}{i:>15d}{e:>19.1f}{(n - e) / np.sqrt(max(e, 1)):>7.1f}")
+    print(f"\n{'Z >=':>6}{'data maxima':>13}{'inverted data':>15}{'far_slides x T':>16}"
+          f"{'far x T':>10}{'pull':>7}")
+    for z, n, i, e, c in zip(levels, observed, inverted, expected, combined):
+        print(f"{z:>6.1f}{n:>13d}{i:>15d}{e:>16.1f}{c:>10.1f}"
+              f"{(n - c) / np.sqrt(max(c, 1)):>7.1f}")
+    far_x = np.logspace(-1, np.log10(max(2000.0 / live_data, 1.0)), 13)
+    n_below = np.array([np.sum(far <= x) for x in far_x])
+    print(f"\n{'x (1/h)':>9}{'far <= x':>10}{'x T':>9}{'pull':>7}")
+    for x, n in zip(far_x, n_below):
+        e = x * live_data
+        print(f"{x:>9.2f}{n:>10d}{e:>9.1f}{(n - e) / np.sqrt(max(e, 1)):>7.1f}")
     if args.plot:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-        fig, ax = plt.subplots(figsize=(6, 4))
-        ax.errorbar(levels, observed, np.sqrt(observed), fmt="o",
-                    label="data: local maxima of Z")
-        ax.plot(levels, np.where(inverted > 0, inverted, np.nan), "s", mfc="none",
-                label="sign-inverted data (no source, same correlations)")
-        ax.plot(levels, expected, "-", label="far(Z) x live time (time slides)")
-        ax.set_yscale("log")
-        ax.set_xlabel("Z")
-        ax.set_ylabel("number with statistic >= Z")
-        ax.set_title(f"noise-only f090, {args.minutes:.0f} min of w16, {args.slides} slides")
-        ax.legend()
-        fig.tight_layout()
-        fig.savefig(args.plot, dpi=110)
-        print(f"figure: {args.plot}")
+        calibration_plot(args.plot, args, levels, observed, inverted, expected, combined,
+                         far_x, n_below, live_data)
     return 0
 
 

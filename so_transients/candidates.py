@@ -83,7 +83,12 @@ SCHEMA = (
     Column("coherent_snr", "float", None, _S, "coherent statistic Z of the crossing at the "
                                                "candidate (optional step)"),
     Column("far", "float", "1 / h", _S, "false alarms per wafer-band-hour with Z at least "
-                                        "this large, from time slides"),
+                                        "this large: the higher of far_slides and "
+                                        "far_inverted"),
+    Column("far_slides", "float", "1 / h", _S, "far from the time slides' maxima"),
+    Column("far_inverted", "float", "1 / h", _S, "far from the sign-inverted data's maxima "
+                                                 "(counted, or beyond tail_from its tail "
+                                                 "model where higher)"),
     Column("pass_far", "bool", None, _S, "far <= max_far (True without the step or max_far)",
            missing=True),
     Column("flux", "float", "mJy", _T, "fitted amplitude A0 of the beam model"),

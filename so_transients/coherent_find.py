@@ -83,33 +83,58 @@ def shares(terms, lags, window):
     return float(single), float(strip.max() / positive.sum())
 
 
+def sum_terms(snr, weights, lags, row, sample):
+    """``(dets, samples, terms)`` of the map position (``row`` index, ``sample`` in ``snr``):
+    the detectors with weight there, the samples it crosses them at (inside ``snr``) and
+    their weighted S/N, whose sum is the position's unnormalized Z."""
+    dets = np.flatnonzero(weights[row])
+    at = sample + lags[dets]
+    inside = (at >= 0) & (at < snr.shape[1])
+    dets, at = dets[inside], at[inside]
+    return dets, at, weights[row, dets] * np.nan_to_num(snr[dets, at])
+
+
+def vetoed(snr, geometry, rows, beam_sigma, sigma_amp, live, peak_rows, peak_samples, cfg):
+    """For each map position (``peak_rows`` indices, ``peak_samples``), whether a glitch
+    veto removes it: one detector makes more than ``cfg.max_single_share`` of its sum, or
+    detectors crossed at one instant more than ``cfg.max_instant_share`` of it."""
+    weights, _ = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
+    lags = geometry.lag_samples
+    window = INSTANT * crossing_samples(geometry, beam_sigma)
+    out = np.zeros(len(peak_rows), bool)
+    for k, (r, t0) in enumerate(zip(peak_rows, peak_samples)):
+        dets, _, terms = sum_terms(snr, weights, lags, r, t0)
+        single, instant = shares(terms, lags[dets], window)
+        out[k] = single > cfg.max_single_share or instant > cfg.max_instant_share
+    return out
+
+
+def crossing_samples(geometry, beam_sigma):
+    """Samples a position takes to drift one beam sigma (at least 1)."""
+    return max(1, int(round(geometry.sample_rate * beam_sigma / geometry.speed)))
+
+
 def scan_candidates(snr, first, geometry, beam_sigma, sigma_amp, live, cfg):
     """The maxima of one scan (``snr``: the band's live detectors over the scan's samples,
-    the scan starting at group sample ``first``): a list of dicts with the map position
-    (``row``, ``sample`` in the group), ``map_z``, the vetoes' shares, and ``hit_dets``,
-    ``hit_samples`` (rows of ``snr`` and group samples of the sum's terms)."""
+    the scan starting at group sample ``first``) that no veto removes: a list of dicts with
+    the map position (``row`` offset, ``sample`` in the group), ``map_z``, and ``hit_dets``,
+    ``hit_samples``, ``hit_snr`` (rows of ``snr``, group samples and S/N of the sum's terms
+    within ``hit_reach``)."""
     rows = row_offsets(geometry, beam_sigma, cfg.row_step)
     z, _ = coherent_map(snr, geometry, rows, beam_sigma, sigma_amp, live)
     scale = measured_scale(z)
-    window = max(1, int(round(geometry.sample_rate * beam_sigma / geometry.speed)))
+    window = crossing_samples(geometry, beam_sigma)
     r, s = local_maxima(z, cfg.coherent_threshold * scale, window)
     keep = suppress_neighbours(z[r, s], r, s, int(np.ceil(2.0 / cfg.row_step)), 3 * window)
+    r, s = r[keep], s[keep]
+    keep = ~vetoed(snr, geometry, rows, beam_sigma, sigma_amp, live, r, s, cfg)
     weights, _ = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
-    lags = geometry.lag_samples
-    nsamp = snr.shape[1]
     found = []
-    for k in keep:
-        dets = np.flatnonzero(weights[r[k]])
-        at = s[k] + lags[dets]
-        inside = (at >= 0) & (at < nsamp)
-        dets, at = dets[inside], at[inside]
-        terms = weights[r[k], dets] * np.nan_to_num(snr[dets, at])
-        single, instant = shares(terms, lags[dets], INSTANT * window)
-        if single > cfg.max_single_share or instant > cfg.max_instant_share:
-            continue
-        near = np.abs(geometry.across[dets] - rows[r[k]]) <= cfg.hit_reach * beam_sigma
+    for row, sample in zip(r[keep], s[keep]):
+        dets, at, _ = sum_terms(snr, weights, geometry.lag_samples, row, sample)
+        near = np.abs(geometry.across[dets] - rows[row]) <= cfg.hit_reach * beam_sigma
         near = near if near.any() else np.ones(len(dets), bool)
-        found.append(dict(row=rows[r[k]], sample=first + s[k], map_z=z[r[k], s[k]] / scale,
+        found.append(dict(row=rows[row], sample=first + sample, map_z=z[row, sample] / scale,
                           hit_dets=dets[near], hit_samples=first + at[near],
                           hit_snr=np.nan_to_num(snr[dets[near], at[near]])))
     return found

@@ -407,7 +407,7 @@ class TransientCuts(_Preprocess):
 
 @_register
 class TransientSignificance(_Preprocess):
-    """A false-alarm rate for every candidate, from time slides of the group's own data.
+    """A false-alarm rate for every candidate, from time slides and the sign-inverted data.
 
     Optional, between ``transient_cuts`` and ``transient_fit``. For each scan and band, the
     coherent statistic Z (the maximum-likelihood S/N of a steady source over one wafer
@@ -416,13 +416,19 @@ class TransientSignificance(_Preprocess):
     the data and on ``n_slides`` time slides (each detector's S/N shifted cyclically within
     the scan by its own random offset of at least ``min_slide_s``). Each candidate gets the
     highest Z near its position and crossing time, each map in units of its own measured
-    spread, and ``far``: background maxima at least as high per hour of this
-    wafer-band (live time: ``n_slides`` x the time searched). With ``max_far`` (per
+    spread, and two false-alarm rates per hour of this wafer-band: ``far_slides``, the slides'
+    maxima at least as high (live time: ``n_slides`` x the time searched; the slides break
+    the residual atmosphere's correlation between detectors, so it runs low), and
+    ``far_inverted``, the maxima of the sign-inverted data's map (every correlation kept, no
+    source; the data's own live time), counted, and beyond ``tail_from`` also by a
+    Gaussian-like model of their tail (:mod:`so_transients.tail_model`) so that rates below
+    one per live time are resolved. ``far`` is the higher of the two. With ``max_far`` (per
     wafer-band-hour), a candidate above it is not ``detected`` by ``transient_fit``. See
     :mod:`so_transients.significance` and :mod:`so_transients.coherent`.
 
     Reads the scans ``transient_find`` searched (``aman.transient_scan``). In
-    ``aman.transient_candidates``: ``coherent_snr``, ``far`` (1/h), ``pass_far``; the
+    ``aman.transient_candidates``: ``coherent_snr``, ``far``, ``far_slides``,
+    ``far_inverted`` (1/h), ``pass_far``; the
     group's background live time and Z scale as ``significance_live_hours`` and
     ``significance_z_scale``. Saved to the archive as ``proc_aman.transient_significance``
     (on the detector axis, keyed by ``cand_id``).
@@ -439,6 +445,9 @@ class TransientSignificance(_Preprocess):
           max_single_share: 0.5           # background maxima one detector makes: left out
           max_far: null                   # per wafer-band-hour; null: report only
           seed: 0
+          tail_from: 3.5                  # inverted maxima's tail modelled from this Z
+          sidelobe_window: 1.0            # s: inverted maxima this close to a data maximum
+          max_opposite_ratio: 2.0         # ... this many times higher: its sidelobe, left out
         save: true
     """
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import ndimage
 
 from . import pointing
 from .coherent import (CrossingGeometry, coherent_map, false_alarm_rate, largest_share,
@@ -31,6 +32,7 @@ from .coherent import (CrossingGeometry, coherent_map, false_alarm_rate, largest
 from .scan_geometry import drift_velocity
 from .scan_geometry import sample_rate as rate_of   # (``sample_rate`` names the Hz below)
 from .step_config import positive
+from .tail_model import model_count_above
 
 
 @dataclass
@@ -43,11 +45,16 @@ class SignificanceConfig:
     max_single_share: float = 0.5    # background maxima one detector makes are left out
     max_far: float | None = None     # per wafer-band-hour; None: far is reported, not cut
     seed: int = 0
+    tail_from: float | None = 3.5    # inverted data's maxima modelled from this Z; None: off
+    sidelobe_window: float = 1.0     # s: inverted maxima this close to a data maximum ...
+    max_opposite_ratio: float = 2.0  # ... this many times higher are its filter sidelobe
 
     def __post_init__(self):
         positive("transient_significance", n_slides=self.n_slides,
                  min_slide_s=self.min_slide_s, row_step=self.row_step,
-                 peak_window=self.peak_window, max_far=self.max_far)
+                 peak_window=self.peak_window, max_far=self.max_far, tail_from=self.tail_from,
+                 sidelobe_window=self.sidelobe_window,
+                 max_opposite_ratio=self.max_opposite_ratio)
 
 
 @dataclass
@@ -62,6 +69,9 @@ class ScanMaps:
     background: list = field(default_factory=list)   # unnormalized Z of slide maxima
     slide_scale: list = field(default_factory=list)  # robust std of each slide's map
     live_s: float = 0.0              # seconds of positions searched, over all slides
+    inverted: np.ndarray = field(default_factory=lambda: np.zeros(0))  # unnormalized Z of
+    #                                  the sign-inverted map's maxima (sidelobes left out)
+    data_live_s: float = 0.0         # seconds of positions of the data's own map
 
 
 def scan_geometry(timestamps, bore_q, xi, eta, samples, sample_rate):
@@ -81,10 +91,13 @@ def scan_maps(snr, geometry, beam_sigma, sigma_amp, live, first, cfg: Significan
     z, _ = coherent_map(snr, geometry, rows, beam_sigma, sigma_amp, live)
     out = ScanMaps(first, geometry, rows, z, measured_scale(z))
     nsamp = snr.shape[1]
+    window = max(1, int(geometry.sample_rate * beam_sigma / geometry.speed))
+    out.inverted = inverted_maxima(z, snr, geometry, rows, beam_sigma, sigma_amp, live,
+                                   out.data_scale, window, cfg)
+    out.data_live_s = np.isfinite(z[0]).sum() / geometry.sample_rate
     min_shift = int(cfg.min_slide_s * geometry.sample_rate)
     if nsamp <= 2 * min_shift + 1:
         return out
-    window = max(1, int(geometry.sample_rate * beam_sigma / geometry.speed))
     for _ in range(cfg.n_slides):
         offsets = time_slide_offsets(snr.shape[0], nsamp, min_shift, rng)
         slid, _ = coherent_map(snr, geometry, rows, beam_sigma, sigma_amp, live, offsets)
@@ -98,6 +111,36 @@ def scan_maps(snr, geometry, beam_sigma, sigma_amp, live, first, cfg: Significan
         out.slide_scale.append(scale)
         out.live_s += nsamp / geometry.sample_rate
     return out
+
+
+def inverted_maxima(z, snr, geometry, rows, beam_sigma, sigma_amp, live, scale, window, cfg):
+    """Unnormalized Z of the local maxima of the sign-inverted data's map ``-z`` (noise with
+    every correlation between detectors kept, and no source) at least ``background_floor``
+    x ``scale``; left out: those one detector makes, and a bright source's filter sidelobes
+    (a data maximum ``max_opposite_ratio`` times higher within ``sidelobe_window``)."""
+    r, s = local_maxima(-z, cfg.background_floor * scale, window)
+    share = largest_share(-np.asarray(snr), geometry, rows, beam_sigma, sigma_amp, live, r, s)
+    half = int(round(cfg.sidelobe_window * geometry.sample_rate))
+    nearby = ndimage.maximum_filter(np.nan_to_num(z, nan=-np.inf), size=(5, 2 * half + 1),
+                                    mode="nearest")
+    keep = (share <= cfg.max_single_share) & (nearby[r, s] < cfg.max_opposite_ratio * -z[r, s])
+    return -z[r[keep], s[keep]]
+
+
+def inverted_rate(statistics, inverted, live_hours, x0):
+    """False alarms per hour from the sign-inverted data's maxima ``inverted`` (units of the
+    statistics) over ``live_hours``: the count at least as large, or beyond ``x0`` the
+    Gaussian-like tail model of :mod:`so_transients.tail_model` where it is higher (NaN
+    without live time)."""
+    stats = np.atleast_1d(np.asarray(statistics, float))
+    if not live_hours > 0:
+        return np.full(stats.shape, np.nan)
+    inverted = np.sort(np.asarray(inverted, float))
+    counted = len(inverted) - np.searchsorted(inverted, stats, side="left")
+    model = (np.nan_to_num(model_count_above(np.maximum(stats, x0), inverted, x0))
+             if x0 is not None else np.zeros(stats.shape))
+    model = np.where(stats >= (x0 if x0 is not None else np.inf), model, 0.0)
+    return np.maximum(counted, model) / live_hours
 
 
 def candidate_statistic(maps: ScanMaps, bore_q, timestamps, ra, dec, t_cand, beam_sigma,
@@ -131,6 +174,7 @@ def group_significance(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp, 
     n = len(cands["scan"])
     stat = np.full(n, np.nan)
     background, scales, data_scales, live_s = [], [], [], 0.0
+    inverted, data_live_s = [], 0.0
     for s in np.unique(scan[scan >= 0]):
         samples = np.flatnonzero(scan == s)
         geometry = scan_geometry(timestamps, bore_q, xi, eta, samples, sample_rate)
@@ -140,6 +184,8 @@ def group_significance(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp, 
         scales.extend(maps.slide_scale)
         data_scales.append(maps.data_scale)
         live_s += maps.live_s
+        inverted.append(maps.inverted)
+        data_live_s += maps.data_live_s
         for c in np.flatnonzero(np.asarray(cands["scan"]) == s):
             stat[c] = candidate_statistic(maps, bore_q, timestamps, cands["ra"][c],
                                           cands["dec"][c], cands["t_median"][c], beam_sigma,
@@ -150,14 +196,18 @@ def group_significance(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp, 
     slide_scale = float(np.median(scales)) if scales else 1.0
     live_hours = live_s / 3600.0
     z = stat / scale
-    far = (false_alarm_rate(z, np.asarray(background) / slide_scale, live_hours)
-           if live_hours > 0 else np.full(n, np.nan))
-    far = np.where(np.isfinite(z), far, np.nan)
+    far_slides = (false_alarm_rate(z, np.asarray(background) / slide_scale, live_hours)
+                  if live_hours > 0 else np.full(n, np.nan))
+    far_slides = np.where(np.isfinite(z), far_slides, np.nan)
+    inverted = np.concatenate(inverted) / scale if inverted else np.zeros(0)
+    far_inverted = np.where(np.isfinite(z), inverted_rate(z, inverted, data_live_s / 3600.0,
+                                                          cfg.tail_from), np.nan)
+    far = np.fmax(far_slides, far_inverted)
     # a candidate without a far (no slides possible, or its crossing reaches a scan end)
     # is not cut
     passed = np.ones(n, bool) if cfg.max_far is None else ~(far > cfg.max_far)
-    return dict(coherent_snr=z, far=far, pass_far=passed, live_hours=live_hours,
-                z_scale=scale)
+    return dict(coherent_snr=z, far=far, far_slides=far_slides, far_inverted=far_inverted,
+                pass_far=passed, live_hours=live_hours, z_scale=scale)
 
 
 def significance_by_band(snr, timestamps, bore_q, xi, eta, scan, sigma_amp, live, beam_sigma,
@@ -169,6 +219,7 @@ def significance_by_band(snr, timestamps, bore_q, xi, eta, scan, sigma_amp, live
     grouping)."""
     n = len(cands["scan"])
     out = dict(coherent_snr=np.full(n, np.nan), far=np.full(n, np.nan),
+               far_slides=np.full(n, np.nan), far_inverted=np.full(n, np.nan),
                pass_far=np.ones(n, bool))
     fs = rate_of(timestamps)
     live_hours, scale = np.nan, np.nan

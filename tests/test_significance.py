@@ -110,3 +110,50 @@ def test_imperfect_detectors_keep_a_bright_flare_significant(tmp_path, dead_mode
     assert np.all(cands["coherent_snr"][others] < z.min())
     assert np.all(cands["far"][others] > far.max())
     assert np.isfinite(float(aman.transient_candidates.significance_z_scale))
+
+
+def test_the_inverted_rate_counts_then_follows_the_tail_model():
+    from so_transients.significance import inverted_rate
+    from so_transients.tail_model import model_count_above
+
+    rng = np.random.default_rng(8)
+    # maxima of unit-variance noise above 3: the tail of a Gaussian (drawn by rejection)
+    draws = rng.normal(size=4_000_000)
+    maxima = draws[draws >= 3.0]
+    hours = 2.0
+    rate = inverted_rate([3.2, 4.0, 6.0], maxima, hours, 3.5)
+    # below tail_from: the count; beyond it, the higher of the count and the model
+    assert rate[0] == np.sum(maxima >= 3.2) / hours
+    assert rate[1] == max(np.sum(maxima >= 4.0), model_count_above(4.0, maxima, 3.5)) / hours
+    # far beyond every maximum the count is 0 but the model still resolves a rate, close
+    # to the Gaussian's: N(>6) / N(>3.5) = 4.2e-6 (the model's exp(-(x^2 - x0^2)/2) form
+    # leaves out the 1/x factor: about x0 / x = 0.6 of it)
+    n35 = np.sum(maxima >= 3.5)
+    assert 0 < rate[2] * hours < n35 * 4.2e-6 * 1.0 and rate[2] * hours > n35 * 4.2e-6 * 0.3
+    assert np.all(np.isnan(inverted_rate([4.0], maxima, 0.0, 3.5)))
+
+
+def test_a_bright_sources_filter_sidelobes_are_not_inverted_background():
+    from so_transients.coherent import row_offsets
+    from so_transients.significance import inverted_maxima, SignificanceConfig
+    from so_transients.coherent import coherent_map
+
+    from test_coherent import SIGMA_BEAM, inject, wafer
+
+    rng = np.random.default_rng(9)
+    geometry, sigma = wafer(rng=rng)
+    snr = rng.normal(size=(len(sigma), 4000))
+    rows = row_offsets(geometry, SIGMA_BEAM, 0.8)
+    c = rows[len(rows) // 2]
+    inject(snr, geometry, sigma, 600.0, 2000, c)               # Z about 100
+    for lobe in (-12, 12):                                     # the filter's negative lobes
+        inject(snr, geometry, sigma, -0.3 * 600.0, 2000 + lobe, c)
+    live = np.ones(len(sigma), bool)
+    z, _ = coherent_map(snr, geometry, rows, SIGMA_BEAM, sigma, live)
+
+    def near_source(cfg):
+        out = inverted_maxima(z, snr, geometry, rows, SIGMA_BEAM, sigma, live, 1.0, 3, cfg)
+        return np.sum(out >= 10)                                # far above the noise
+
+    assert near_source(SignificanceConfig()) == 0
+    assert near_source(SignificanceConfig(max_opposite_ratio=1e9)) > 0

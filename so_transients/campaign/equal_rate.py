@@ -26,37 +26,12 @@ import numpy as np
 from astropy import units as u
 from astropy.table import Table
 
+from ..tail_model import model_count_above, tail_threshold
 from .stats import binomial_interval
 
 #: The paper's false-detection rate per wafer-band-hour (section 5.3: about 2 per hour over
 #: 12 MF wafers x 2 bands, about 1 per hour over 6 UHF wafers x 2 bands).
 PAPER_RATE_PER_WBH = {"f090": 2 / 24, "f150": 2 / 24, "f220": 1 / 12, "f280": 1 / 12}
-
-
-def _tail_fit(snr, x0):
-    """``(n0, s^2)``: the number of candidates above ``x0`` and the tail's maximum-likelihood
-    scale (NaN below 5 candidates)."""
-    snr = np.asarray(snr, float)
-    tail = snr[np.isfinite(snr) & (snr > x0)]
-    s2 = np.mean(tail**2 - x0**2) / 2 if len(tail) >= 5 else np.nan
-    return len(tail), s2
-
-
-def tail_threshold(snr, wafer_hours, target, x0=3.0):
-    """Fitted-S/N threshold where the modelled noise rate above it is ``target`` per
-    wafer-band-hour, from the noise candidates' fitted S/N ``snr``; ``(threshold, s, n0)``
-    with the tail's scale and the number above ``x0`` (NaN threshold below 5 candidates)."""
-    n0, s2 = _tail_fit(snr, x0)
-    if not np.isfinite(s2):
-        return np.nan, np.nan, n0
-    x2 = x0**2 + 2 * s2 * np.log(max(n0 / (target * wafer_hours), 1.0))
-    return float(np.sqrt(x2)), float(np.sqrt(s2)), n0
-
-
-def model_count_above(x, snr, x0=3.0):
-    """The tail model's expected number of candidates above ``x``."""
-    n0, s2 = _tail_fit(snr, x0)
-    return float(n0 * np.exp(-(x**2 - x0**2) / (2 * s2))) if np.isfinite(s2) else np.nan
 
 
 def raised_threshold(snr, wafer_hours, target, x0=3.0, min_snr=5.0):

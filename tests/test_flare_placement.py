@@ -65,3 +65,27 @@ def test_active_window_placement_meets_the_flare_within_its_light_curve(group_st
         inside = t[(t >= f["t_peak"] - f["t_rise"]) & (t <= f["t_peak"] + f["t_decay"])]
         assert min(_offset_at(group_state, f, s) for s in inside) <= 0.6 * pitch
     assert np.mean(_offset_at_peak(group_state, flares) > 2 * pitch) > 0.5
+
+
+def test_flare_eta_shapes_the_injected_light_curves(group_state):
+    from so_transients.lightcurve import flare_flux
+
+    cell = Cell("f090", 0.5, 500.0)
+    linear = draw_cell_flares(cell, 5, [group_state], np.random.default_rng(4))
+    peaked = draw_cell_flares(cell, 5, [group_state], np.random.default_rng(4), flare_eta=3.0)
+    assert np.all(linear["eta_rise"] == 1.0) and np.all(peaked["eta_decay"] == 3.0)
+    f = peaked[0]
+    half = f["t_peak"] - 0.25          # half-way up the rise: 1/2 linear, 1/8 with eta = 3
+    ratio = flare_flux(np.array([half]), f["t_peak"], 500.0, 0.5, 0.5, 3.0, 3.0)[0] / 500.0
+    assert ratio == pytest.approx(0.125)
+    with pytest.raises(ValueError, match="flare_eta"):
+        Injection(flare_eta=0.0)
+
+
+def test_the_default_injection_keeps_a_configs_digest(tmp_path):
+    from so_transients.campaign.config import CampaignConfig
+
+    grid = {"f090": {"t_rise": [0.5], "s_peak_mjy": [500]}}
+    base = CampaignConfig(grid=grid)
+    assert CampaignConfig(grid=grid, injection=Injection(flare_eta=1.0)).digest() == base.digest()
+    assert CampaignConfig(grid=grid, injection=Injection(flare_eta=2.0)).digest() != base.digest()

@@ -77,7 +77,8 @@ class Injection:
     usually not sampled, as for the paper's example flare); ``active_window`` where one points
     at a time uniform within the flare's active window (the array meets the flare at a random
     phase of its light curve). The peak time is uniform in the constant-velocity part in every
-    case."""
+    case. ``flare_eta``: the power-law index of eq. 1's rise and decay (1: linear; the paper
+    does not state its value; larger makes the flare more peaked)."""
 
     window_pad: float = 3.0          # s of data kept on each side of a crossing
     filter_pad: float = 10.0         # s of zero padding when filtering the injected signal
@@ -85,11 +86,14 @@ class Injection:
     min_expected_snr: float = 0.5    # skip crossings whose best detector expects less S/N
     max_crossings: int | None = None  # per flare and group, brightest first (None: all)
     placement: str = "detector_at_peak"   # or "scan_area", "active_window" (see above)
+    flare_eta: float = 1.0           # power-law index of the rise and decay (eq. 1)
 
     def __post_init__(self):
         if self.placement not in PLACEMENTS:
             raise ValueError(f"campaign injection placement {self.placement!r}: "
                              f"use one of {PLACEMENTS}")
+        if not self.flare_eta > 0:
+            raise ValueError(f"campaign injection flare_eta must be > 0, got {self.flare_eta}")
 
 
 @dataclass
@@ -151,12 +155,14 @@ class CampaignConfig:
 
     def digest(self) -> str:
         """Hash of everything that changes results (not the output folder or process count).
-        The default flare placement is left out, so configs written before it keep their hash."""
+        The default flare placement and light-curve index are left out, so configs written
+        before them keep their hash."""
         data = dataclasses.asdict(self)
         data.pop("output")
         data.pop("nproc")
-        if self.injection.placement == Injection().placement:
-            data["injection"].pop("placement")
+        for key in ("placement", "flare_eta"):
+            if getattr(self.injection, key) == getattr(Injection(), key):
+                data["injection"].pop(key)
         data["preprocess"] = self.process_pipe
         text = json.dumps(data, sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:16]

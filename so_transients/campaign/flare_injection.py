@@ -28,12 +28,14 @@ from ..sim.sources import PointingContext, SourceCrossing, add_sources, draw_fla
 from .search_steps import stack
 
 
-def draw_cell_flares(cell, n, states, rng, placement="detector_at_peak") -> Table:
+def draw_cell_flares(cell, n, states, rng, placement="detector_at_peak", flare_eta=1.0
+                     ) -> Table:
     """``n`` flares of ``cell`` at random peak times (anywhere in the constant-velocity part
     of the sweeps, as in the paper's section 5.1, up to the turnarounds; away from the ends
     of the observation) and positions (where a random detector of the band points then, or
     with ``placement="scan_area"`` at an independent random time of that kind, plus up to half
-    a pixel pitch), for the observation of ``states`` (the band's groups, one obs)."""
+    a pixel pitch), for the observation of ``states`` (the band's groups, one obs); ``flare_eta``:
+    the light curves' rise and decay power-law index."""
     first = states[0]
     xi = np.concatenate([s.xi for s in states])
     eta = np.concatenate([s.eta for s in states])
@@ -44,7 +46,8 @@ def draw_cell_flares(cell, n, states, rng, placement="detector_at_peak") -> Tabl
     edge = min(5.0 + cell.t_rise, 0.4 * (t[-1] - t[0]))   # light curves inside the observation
     scanning &= (t > t[0] + edge) & (t < t[-1] - edge)
     ctx = PointingContext(t, first.bore_q, scanning, xi, eta, names, detector_pitch(xi, eta))
-    table = draw_flares(FlareConfig(n=n, s_peak_mjy=cell.s_peak, t_rise=cell.t_rise),
+    table = draw_flares(FlareConfig(n=n, s_peak_mjy=cell.s_peak, t_rise=cell.t_rise,
+                                    eta_rise=flare_eta, eta_decay=flare_eta),
                         [cell.band], ctx, rng, placement)
     table["s_peak"][:] = cell.s_peak       # exact grid values (not exp(log(v)))
     table["t_rise"][:] = cell.t_rise

@@ -34,9 +34,10 @@ from .stats import binomial_interval
 from .work_units import search_flares
 
 
-def spaced_flares(cell, n, states, rng, separation, placement="detector_at_peak"):
+def spaced_flares(cell, n, states, rng, separation, placement="detector_at_peak",
+                  flare_eta=1.0):
     """Up to ``n`` flares of ``cell`` whose active windows are ``separation`` s apart."""
-    pool = draw_cell_flares(cell, 30 * n, states, rng, placement)
+    pool = draw_cell_flares(cell, 30 * n, states, rng, placement, flare_eta)
     chosen, busy = [], []
     for k in range(len(pool)):
         start = pool["t_peak"][k] - cell.t_rise - separation / 2
@@ -107,7 +108,8 @@ def check_cell(cfg, out: Path, folders: dict, cell, progress=True) -> dict:
     states = [GroupState.load(g, folders[g], search) for g in groups]
     rng = rng_for(cfg.seed, "full_check", cell.label)
     flares = spaced_flares(cell, cfg.full_check.n_flares, states, rng,
-                           cfg.full_check.separation, cfg.injection.placement)
+                           cfg.full_check.separation, cfg.injection.placement,
+                           cfg.injection.flare_eta)
     truth, full = full_pipeline(cfg, folder, flares, states[0].timestamps[0],
                                 sorted({f"{g.wafer}_{g.band}" for g in groups}), progress,
                                 max(s.snr.nbytes for s in states))

@@ -103,7 +103,8 @@ def run_unit(spec: dict) -> dict:
     states = [_state(Group(*g), folder, spec["search_steps"]) for g, folder in spec["groups"]]
     rng = rng_for(spec["seed"], "campaign", cell.label, spec["obs_id"])
     options = Injection(**spec["injection"])
-    flares = draw_cell_flares(cell, spec["n"], states, rng, options.placement)
+    flares = draw_cell_flares(cell, spec["n"], states, rng, options.placement,
+                              options.flare_eta)
     flares["source_id"] += spec["first_id"]
     flares, detections = search_flares(states, flares, options,
                                        spec["max_dt"], spec["max_offset_arcmin"] * ARCMIN)

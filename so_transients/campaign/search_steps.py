@@ -25,7 +25,7 @@ from ..step_config import from_yaml
 SEARCH_STEPS = tuple(s for s in candidates.STEPS if s != "transient_significance")
 #: Columns of a campaign's detection tables (besides ``obs_id``).
 DETECTION_COLUMNS = ("bandpass", "wafer_slot", "t_peak", "ra", "dec", "ra_err", "dec_err",
-                     "flux", "flux_err", "snr_fit", "n_dets", "snr_max")
+                     "flux", "flux_err", "snr_fit", "n_dets", "snr_max", "map_z")
 
 
 def split_pipe(process_pipe):

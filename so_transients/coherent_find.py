@@ -69,7 +69,10 @@ def suppress_neighbours(z_peaks, rows, samples, row_reach, time_reach):
 def shares(terms, lags, window):
     """``(single, instant)``: the largest share one detector has of a maximum's sum (its
     ``terms``), and the largest share of its positive sum from detectors crossed within
-    ``window`` samples of one instant (``lags``: when each is crossed)."""
+    ``window`` samples of one instant (``lags``: when each is crossed); both 1 (vetoed)
+    without terms."""
+    if not len(terms):
+        return 1.0, 1.0
     total = terms.sum()
     single = terms.max() / total if total > 0 else 1.0
     positive = np.clip(terms, 0.0, None)

@@ -82,9 +82,10 @@ def test_a_spike_on_one_detector_is_vetoed():
     ([1.0, 1.0, 1.0, 1.0], [0, 10, 20, 30], 0.25, 0.25),
     ([1.0, 1.0, 1.0, 1.0], [0, 1, 2, 30], 0.25, 0.75),
     ([3.0, -1.0, 0.0, 0.0], [0, 10, 20, 30], 1.5, 1.0),
+    ([], [], 1.0, 1.0),
 ])
 def test_shares(terms, lags, single, instant):
-    s, i = shares(np.asarray(terms), np.asarray(lags), 2)
+    s, i = shares(np.asarray(terms, float), np.asarray(lags, int), 2)
     assert s == pytest.approx(single) and i == pytest.approx(instant)
 
 

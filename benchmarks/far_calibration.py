@@ -35,7 +35,7 @@ from sotodlib.preprocess import Pipeline  # noqa: E402
 import so_transients  # noqa: E402,F401  registers the steps and the loader
 from so_transients import pointing  # noqa: E402
 from so_transients.coherent import (false_alarm_rate, local_maxima,  # noqa: E402
-                                    measured_scale)
+                                    measured_scale, row_weights)
 from so_transients.coherent_find import vetoed  # noqa: E402
 from so_transients.find import FindConfig, group_scans  # noqa: E402
 from so_transients.scan_geometry import sample_rate  # noqa: E402
@@ -91,8 +91,8 @@ def data_maxima(maps, snrs, sigmas, beam, scale):
     for m, snr, sigma in zip(maps, snrs, sigmas):
         window = max(1, int(m.geometry.sample_rate * beam / m.geometry.speed))
         r, s = local_maxima(m.z, 2.0 * scale, window)
-        keep = ~vetoed(snr, m.geometry, m.rows, beam, sigma, np.ones(len(sigma), bool), r, s,
-                       FindConfig(mode="coherent"))
+        weights, _ = row_weights(m.geometry, m.rows, beam, sigma, np.ones(len(sigma), bool))
+        keep = ~vetoed(snr, m.geometry, weights, beam, r, s, FindConfig(mode="coherent"))
         out.extend(m.z[r[keep], s[keep]] / scale)
     return np.asarray(out)
 

@@ -35,7 +35,7 @@ import numpy as np
 
 from . import candidates, pointing
 from .coherent import coherent_map, local_maxima, measured_scale, row_offsets, row_weights
-from .find import CLUSTER_FIELDS, band_part, merge_bands
+from .find import CLUSTER_FIELDS, as_arrays, band_part, merge_bands
 from .scan_geometry import sample_rate as rate_of
 from .significance import scan_geometry
 
@@ -97,11 +97,11 @@ def sum_terms(snr, weights, lags, row, sample):
     return dets, at, weights[row, dets] * np.nan_to_num(snr[dets, at])
 
 
-def vetoed(snr, geometry, rows, beam_sigma, sigma_amp, live, peak_rows, peak_samples, cfg):
+def vetoed(snr, geometry, weights, beam_sigma, peak_rows, peak_samples, cfg):
     """For each map position (``peak_rows`` indices, ``peak_samples``), whether a glitch
     veto removes it: one detector makes more than ``cfg.max_single_share`` of its sum, or
-    detectors crossed at one instant more than ``cfg.max_instant_share`` of it."""
-    weights, _ = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
+    detectors crossed at one instant more than ``cfg.max_instant_share`` of it
+    (``weights``: the map's, :func:`so_transients.coherent.row_weights`)."""
     lags = geometry.lag_samples
     window = INSTANT * crossing_samples(geometry, beam_sigma)
     out = np.zeros(len(peak_rows), bool)
@@ -130,8 +130,8 @@ def scan_candidates(snr, first, geometry, beam_sigma, sigma_amp, live, cfg):
     r, s = local_maxima(z, cfg.coherent_threshold * scale, window)
     keep = suppress_neighbours(z[r, s], r, s, int(np.ceil(2.0 / cfg.row_step)), 3 * window)
     r, s = r[keep], s[keep]
-    keep = ~vetoed(snr, geometry, rows, beam_sigma, sigma_amp, live, r, s, cfg)
     weights, _ = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
+    keep = ~vetoed(snr, geometry, weights, beam_sigma, r, s, cfg)
     found = []
     for row, sample in zip(r[keep], s[keep]):
         dets, at, _ = sum_terms(snr, weights, geometry.lag_samples, row, sample)
@@ -153,7 +153,7 @@ def band_candidates(snr, dets, timestamps, bore_q, xi, eta, scan, directions, si
     if len(dets) < cfg.min_dets:
         log.warning("%s: %d live detectors, fewer than min_dets = %d: too few for a coherent "
                     "search; no candidates", where, len(dets), cfg.min_dets)
-        return _arrays(cands, hits)
+        return as_arrays(cands, hits)
     live = np.ones(len(dets), bool)
     for k in np.unique(scan[scan >= 0]):
         samples = np.flatnonzero(scan == k)
@@ -164,7 +164,7 @@ def band_candidates(snr, dets, timestamps, bore_q, xi, eta, scan, directions, si
         for peak in scan_candidates(block, samples[0], geometry, beam_sigma, sigma_amp, live,
                                     cfg):
             _add(cands, hits, peak, k, directions[k], geometry, bore_q, xi, eta, timestamps)
-    return _arrays(cands, hits)
+    return as_arrays(cands, hits)
 
 
 def _add(cands, hits, peak, scan, direction, geometry, bore_q, xi, eta, t):
@@ -184,13 +184,6 @@ def _add(cands, hits, peak, scan, direction, geometry, bore_q, xi, eta, t):
     for key, value in (("det", d), ("samp", s), ("snr", v), ("ra", hit_ra), ("dec", hit_dec)):
         hits[key].extend(value)
     hits["cand"].extend([cid] * len(d))
-
-
-def _arrays(cands, hits):
-    cands = {k: np.asarray(v) for k, v in cands.items()}
-    hits = {k: np.asarray(v, dtype) for (k, v), dtype in zip(hits.items(),
-                                                             candidates.HIT_COLUMNS.values())}
-    return cands, hits
 
 
 def coherent_group_candidates(snr, timestamps, bore_q, xi, eta, scan, directions, bands, wafers,

@@ -172,12 +172,18 @@ def find_candidates(snr, timestamps, scan, directions, radec, eps, cfg: FindConf
                 continue
             _add_candidate(cands, hits, members, k, directions[k], dets, samps, values, ra, dec,
                            timestamps)
-    cands = {k: np.asarray(v) for k, v in cands.items()}
-    hits = {k: np.asarray(v, dtype) for (k, v), dtype in zip(hits.items(),
-                                                             candidates.HIT_COLUMNS.values())}
+    cands, hits = as_arrays(cands, hits)
     if cap is False:
         return cands, hits
     return cap_candidates(cands, hits, cfg.max_candidates if cap is None else cap)
+
+
+def as_arrays(cands, hits):
+    """Candidate and hit columns collected as lists, as arrays (hits in their dtypes)."""
+    cands = {k: np.asarray(v) for k, v in cands.items()}
+    hits = {k: np.asarray(v, dtype) for (k, v), dtype in zip(hits.items(),
+                                                             candidates.HIT_COLUMNS.values())}
+    return cands, hits
 
 
 def _add_candidate(cands, hits, members, scan, direction, dets, samps, values, ra, dec, t):

@@ -137,9 +137,10 @@ def inverted_rate(statistics, inverted, live_hours, x0):
         return np.full(stats.shape, np.nan)
     inverted = np.sort(np.asarray(inverted, float))
     counted = len(inverted) - np.searchsorted(inverted, stats, side="left")
-    model = (np.nan_to_num(model_count_above(np.maximum(stats, x0), inverted, x0))
-             if x0 is not None else np.zeros(stats.shape))
-    model = np.where(stats >= (x0 if x0 is not None else np.inf), model, 0.0)
+    model = np.zeros(stats.shape)
+    if x0 is not None:
+        beyond = stats >= x0
+        model[beyond] = np.nan_to_num(model_count_above(stats[beyond], inverted, x0))
     return np.maximum(counted, model) / live_hours
 
 

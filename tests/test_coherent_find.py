@@ -94,6 +94,14 @@ def test_shares(terms, lags, single, instant):
 COHERENT = {"transient_find": {"calc": {"mode": "coherent"}}}
 
 
+def coherent_pipe():
+    """The shipped site config's steps with ``transient_find`` in coherent mode."""
+    import yaml
+
+    from so_transients.site import TEMPLATE, apply_overrides
+    return apply_overrides(yaml.safe_load(TEMPLATE.read_text())["process_pipe"], COHERENT)
+
+
 @pytest.fixture(scope="module")
 def coherent_site_run(tmp_path_factory):
     """Five minutes of w16 at f090 with two flares, the shipped config in coherent mode."""
@@ -126,9 +134,6 @@ def test_coherent_mode_runs_in_the_site_pipeline_into_the_archive(coherent_site_
 def test_a_band_with_too_few_live_detectors_gets_a_named_warning(tmp_path, caplog):
     import logging
 
-    import yaml
-    from pathlib import Path
-
     from so_transients import candidates
     from conftest import load_group, run_sim, run_steps
 
@@ -137,11 +142,8 @@ def test_a_band_with_too_few_live_detectors_gets_a_named_warning(tmp_path, caplo
                   cmb={"enabled": False})
     aman = load_group(sim, band="f090")
     aman.signal[3:] = 0.0                         # all but three detectors dead
-    pipe = yaml.safe_load((Path(__file__).parent.parent / "configs"
-                           / "preprocess_transients.yaml").read_text())["process_pipe"]
-    steps = [s for s in pipe if s["name"] in candidates.STEPS or s["name"] == "transient_filter"]
-    steps = [{**s, "calc": {**s["calc"], "mode": "coherent"}} if s["name"] == "transient_find"
-             else s for s in steps]
+    steps = [s for s in coherent_pipe()
+             if s["name"] in candidates.STEPS or s["name"] == "transient_filter"]
     with caplog.at_level(logging.WARNING):
         run_steps(aman, steps)
     assert aman.transient_candidates.transient_cand.count == 0
@@ -155,9 +157,6 @@ def test_a_band_with_too_few_live_detectors_gets_a_named_warning(tmp_path, caplo
 def test_many_detector_glitches_do_not_become_coherent_detections(tmp_path):
     """Noise with 50 cosmic-ray glitches, each on 30-60 detectors at one instant, through the
     shipped steps in coherent mode: nothing is detected within a second of a glitch."""
-    import yaml
-    from pathlib import Path
-
     from so_transients import candidates
     from conftest import load_group, run_sim, run_steps
 
@@ -166,11 +165,7 @@ def test_many_detector_glitches_do_not_become_coherent_detections(tmp_path):
                   glitches={"enabled": True, "rate_per_hour": 600, "n_dets": [30, 60]})
     assert len(sim.glitches) >= 30
     aman = load_group(sim, band="f090")
-    pipe = yaml.safe_load((Path(__file__).parent.parent / "configs"
-                           / "preprocess_transients.yaml").read_text())["process_pipe"]
-    steps = [{**s, "calc": {**s["calc"], "mode": "coherent"}} if s["name"] == "transient_find"
-             else s for s in pipe]
-    run_steps(aman, steps)
+    run_steps(aman, coherent_pipe())
     cands = candidates.from_aman(aman.transient_candidates, candidates.CAND_AXIS)
     t = cands["t_median"][np.asarray(cands["detected"], bool)]
     gap = np.min(np.abs(t[:, None] - np.asarray(sim.glitches["ctime"])[None, :]), axis=1,

@@ -8,7 +8,7 @@ from astropy.table import Table
 
 from so_transients import candidates
 from so_transients.results import archive_table
-from so_transients.site import failed_groups, run_site_pipeline, write_site_config
+from so_transients.site import TEMPLATE, failed_groups, run_site_pipeline, write_site_config
 
 from conftest import load_group, run_sim, run_steps
 
@@ -82,8 +82,6 @@ def test_imperfect_detectors_keep_a_bright_flare_significant(tmp_path, dead_mode
     glitches, through the transient steps alone (none of the standard steps that would cut
     bad detectors first) with significance: the bright flare is detected with a finite Z
     beyond every background maximum, and the Z scale stays finite."""
-    from pathlib import Path
-
     sim = run_sim(tmp_path, seed=43, observation={"duration": 240.0},
                   instrument={"bands": ["f090"]},
                   detector_yield={"dead_fraction": 0.16, "dead_mode": dead_mode,
@@ -91,8 +89,7 @@ def test_imperfect_detectors_keep_a_bright_flare_significant(tmp_path, dead_mode
                   glitches={"enabled": True, "rate_per_hour": 200},
                   flares={"list": [{"at_detector": "w16_f090_p100A", "at_time": 120.0,
                                     "t_peak": 120.0, "s_peak_mjy": 3000.0, "t_rise": 5.0}]})
-    config = Path(__file__).parent.parent / "configs" / "preprocess_transients.yaml"
-    pipe = yaml.safe_load(config.read_text())["process_pipe"]
+    pipe = yaml.safe_load(TEMPLATE.read_text())["process_pipe"]
     aman = load_group(sim, band="f090")
     run_steps(aman, with_significance([s for s in pipe if s["name"] in candidates.STEPS
                                        or s["name"] == "transient_filter"]))

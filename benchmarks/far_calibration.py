@@ -89,7 +89,7 @@ def data_maxima(maps, snrs, sigmas, beam, scale):
     the maxima that could be candidates."""
     out = []
     for m, snr, sigma in zip(maps, snrs, sigmas):
-        window = max(1, int(m.geometry.sample_rate * beam / m.geometry.speed))
+        window = m.geometry.crossing_samples(beam)
         r, s = local_maxima(m.z, 2.0 * scale, window)
         weights, _ = row_weights(m.geometry, m.rows, beam, sigma, np.ones(len(sigma), bool))
         keep = ~vetoed(snr, m.geometry, weights, beam, r, s, FindConfig(mode="coherent"))

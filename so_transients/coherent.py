@@ -60,6 +60,11 @@ class CrossingGeometry:
         dx, dy = np.asarray(xi, float) - x0, np.asarray(eta, float) - y0
         return dx * ux + dy * uy, -dx * uy + dy * ux
 
+    def crossing_samples(self, beam_sigma) -> int:
+        """Samples a position takes to drift one beam sigma (at least 1): the time unit of
+        every neighbourhood on the map (local maxima, glitch instants, candidate windows)."""
+        return max(1, int(round(self.sample_rate * beam_sigma / self.speed)))
+
     @property
     def lag_samples(self) -> np.ndarray:
         """Each detector's delay (samples, rounded) after the centre for a passing source."""

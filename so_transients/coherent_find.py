@@ -103,18 +103,13 @@ def vetoed(snr, geometry, weights, beam_sigma, peak_rows, peak_samples, cfg):
     detectors crossed at one instant more than ``cfg.max_instant_share`` of it
     (``weights``: the map's, :func:`so_transients.coherent.row_weights`)."""
     lags = geometry.lag_samples
-    window = INSTANT * crossing_samples(geometry, beam_sigma)
+    window = INSTANT * geometry.crossing_samples(beam_sigma)
     out = np.zeros(len(peak_rows), bool)
     for k, (r, t0) in enumerate(zip(peak_rows, peak_samples)):
         dets, _, terms = sum_terms(snr, weights, lags, r, t0)
         single, instant = shares(terms, lags[dets], window)
         out[k] = single > cfg.max_single_share or instant > cfg.max_instant_share
     return out
-
-
-def crossing_samples(geometry, beam_sigma):
-    """Samples a position takes to drift one beam sigma (at least 1)."""
-    return max(1, int(round(geometry.sample_rate * beam_sigma / geometry.speed)))
 
 
 def scan_candidates(snr, first, geometry, beam_sigma, sigma_amp, live, cfg):
@@ -126,7 +121,7 @@ def scan_candidates(snr, first, geometry, beam_sigma, sigma_amp, live, cfg):
     rows = row_offsets(geometry, beam_sigma, cfg.row_step)
     z, _ = coherent_map(snr, geometry, rows, beam_sigma, sigma_amp, live)
     scale = measured_scale(z)
-    window = crossing_samples(geometry, beam_sigma)
+    window = geometry.crossing_samples(beam_sigma)
     r, s = local_maxima(z, cfg.coherent_threshold * scale, window)
     keep = suppress_neighbours(z[r, s], r, s, int(np.ceil(2.0 / cfg.row_step)), 3 * window)
     r, s = r[keep], s[keep]

@@ -91,7 +91,7 @@ def scan_maps(snr, geometry, beam_sigma, sigma_amp, live, first, cfg: Significan
     z, _ = coherent_map(snr, geometry, rows, beam_sigma, sigma_amp, live)
     out = ScanMaps(first, geometry, rows, z, measured_scale(z))
     nsamp = snr.shape[1]
-    window = max(1, int(geometry.sample_rate * beam_sigma / geometry.speed))
+    window = geometry.crossing_samples(beam_sigma)
     out.inverted = inverted_maxima(z, snr, geometry, rows, beam_sigma, sigma_amp, live,
                                    out.data_scale, window, cfg)
     out.data_live_s = np.isfinite(z[0]).sum() / geometry.sample_rate
@@ -163,52 +163,111 @@ def candidate_statistic(maps: ScanMaps, bore_q, timestamps, ra, dec, t_cand, bea
     return float(np.nanmax(patch)) if np.isfinite(patch).any() else np.nan
 
 
-def group_significance(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp, beam_sigma,
-                       sample_rate, cands, cfg: SignificanceConfig) -> dict:
-    """``coherent_snr``, ``far`` and ``pass_far`` of every candidate of one band of a group
-    (``cands``: ``ra``, ``dec``, ``t_median``, ``scan``), and the group's background
-    ``live_hours`` and ``z_scale``. ``dets``: the rows of ``snr`` (the group's S/N, possibly
-    memory-mapped: one scan of these rows is read at a time) of the band's live detectors;
-    ``xi``, ``eta``, ``sigma_amp``: theirs."""
+@dataclass
+class Background:
+    """A wafer-band's noise background of the coherent statistic Z, in units of the data
+    map's measured spread: the time slides' maxima over ``slide_hours`` and the sign-inverted
+    data's maxima over ``data_hours`` (``scale``: the data map's spread, unnormalized)."""
+
+    slides: np.ndarray
+    slide_hours: float
+    inverted: np.ndarray
+    data_hours: float
+    scale: float = 1.0
+    tail_from: float | None = 3.5    # the inverted maxima's tail model starts here
+    floor: float = 3.0               # maxima were counted from this Z
+
+    @classmethod
+    def from_scans(cls, scans, cfg: SignificanceConfig):
+        """From the :class:`ScanMaps` of a band's scans: each map in units of its own
+        measured spread (the slides break the correlation of neighbouring detectors' residual
+        atmosphere, so the data's Z spreads wider than theirs)."""
+        scale = float(np.median([m.data_scale for m in scans])) if scans else 1.0
+        slide_scales = [s for m in scans for s in m.slide_scale]
+        slide_scale = float(np.median(slide_scales)) if slide_scales else 1.0
+        slides = np.concatenate([np.asarray(m.background, float) for m in scans] or [[]])
+        inverted = np.concatenate([m.inverted for m in scans] or [[]])
+        return cls(slides / slide_scale, sum(m.live_s for m in scans) / 3600.0,
+                   inverted / scale, sum(m.data_live_s for m in scans) / 3600.0, scale,
+                   cfg.tail_from, cfg.background_floor)
+
+    @classmethod
+    def pooled(cls, parts):
+        """Several groups' backgrounds of one band as one (live times add; same settings)."""
+        parts = list(parts)
+        if not parts:
+            raise ValueError("no background to pool")
+        return cls(np.concatenate([p.slides for p in parts] or [[]]),
+                   sum(p.slide_hours for p in parts),
+                   np.concatenate([p.inverted for p in parts] or [[]]),
+                   sum(p.data_hours for p in parts), np.nan, parts[0].tail_from,
+                   parts[0].floor)
+
+    def far(self, z) -> dict:
+        """``far``, ``far_slides`` and ``far_inverted`` (per hour of the wafer-band) of the
+        statistics ``z`` (NaN where ``z`` is NaN); ``far`` is the higher of the two."""
+        z = np.atleast_1d(np.asarray(z, float))
+        slides = (false_alarm_rate(z, self.slides, self.slide_hours)
+                  if self.slide_hours > 0 else np.full(z.shape, np.nan))
+        inverted = inverted_rate(z, self.inverted, self.data_hours, self.tail_from)
+        finite = np.isfinite(z)
+        slides, inverted = np.where(finite, slides, np.nan), np.where(finite, inverted, np.nan)
+        return dict(far=np.fmax(slides, inverted), far_slides=slides, far_inverted=inverted)
+
+    def threshold(self, rate, step=0.005, top=30.0) -> float:
+        """The lowest Z (to ``step``) whose ``far`` is at most ``rate`` (NaN when no Z up to
+        ``top`` reaches it, e.g. slides too short to resolve it)."""
+        grid = np.arange(self.floor, top, step)
+        far = self.far(grid)["far"]
+        ok = np.flatnonzero(far <= rate)
+        return float(grid[ok[0]]) if len(ok) else np.nan
+
+
+def band_background(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp, beam_sigma,
+                    sample_rate, cfg: SignificanceConfig, visit=None) -> Background:
+    """The :class:`Background` of one band of a group. ``dets``: the rows of ``snr`` (the
+    group's S/N, possibly memory-mapped: one scan of these rows is read at a time) of the
+    band's live detectors; ``xi``, ``eta``, ``sigma_amp``: theirs. ``visit(scan, maps)`` is
+    called with each scan's :class:`ScanMaps` while its data map is held."""
     live = np.ones(len(dets), bool)
     rng = np.random.default_rng(cfg.seed)
-    n = len(cands["scan"])
-    stat = np.full(n, np.nan)
-    background, scales, data_scales, live_s = [], [], [], 0.0
-    inverted, data_live_s = [], 0.0
+    scans = []
     for s in np.unique(scan[scan >= 0]):
         samples = np.flatnonzero(scan == s)
         geometry = scan_geometry(timestamps, bore_q, xi, eta, samples, sample_rate)
         maps = scan_maps(np.asarray(snr[dets, samples[0]:samples[-1] + 1]), geometry,
                          beam_sigma, sigma_amp, live, samples[0], cfg, rng)
-        background.extend(maps.background)
-        scales.extend(maps.slide_scale)
-        data_scales.append(maps.data_scale)
-        live_s += maps.live_s
-        inverted.append(maps.inverted)
-        data_live_s += maps.data_live_s
+        if visit is not None:
+            visit(s, maps)
+        maps.z = None                        # only the background is kept
+        scans.append(maps)
+    return Background.from_scans(scans, cfg)
+
+
+def group_significance(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp, beam_sigma,
+                       sample_rate, cands, cfg: SignificanceConfig) -> dict:
+    """``coherent_snr``, ``far``, ``far_slides``, ``far_inverted`` and ``pass_far`` of every
+    candidate of one band of a group (``cands``: ``ra``, ``dec``, ``t_median``, ``scan``),
+    and the group's background ``live_hours`` and ``z_scale`` (arguments as
+    :func:`band_background`)."""
+    n = len(cands["scan"])
+    stat = np.full(n, np.nan)
+
+    def visit(s, maps):
         for c in np.flatnonzero(np.asarray(cands["scan"]) == s):
             stat[c] = candidate_statistic(maps, bore_q, timestamps, cands["ra"][c],
                                           cands["dec"][c], cands["t_median"][c], beam_sigma,
                                           cfg)
-    # each map in units of its own measured spread: the slides break the correlation of
-    # neighbouring detectors' residual atmosphere, so the data's Z spreads wider than theirs
-    scale = float(np.median(data_scales)) if data_scales else 1.0
-    slide_scale = float(np.median(scales)) if scales else 1.0
-    live_hours = live_s / 3600.0
-    z = stat / scale
-    far_slides = (false_alarm_rate(z, np.asarray(background) / slide_scale, live_hours)
-                  if live_hours > 0 else np.full(n, np.nan))
-    far_slides = np.where(np.isfinite(z), far_slides, np.nan)
-    inverted = np.concatenate(inverted) / scale if inverted else np.zeros(0)
-    far_inverted = np.where(np.isfinite(z), inverted_rate(z, inverted, data_live_s / 3600.0,
-                                                          cfg.tail_from), np.nan)
-    far = np.fmax(far_slides, far_inverted)
+
+    background = band_background(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp,
+                                 beam_sigma, sample_rate, cfg, visit)
+    z = stat / background.scale
+    out = background.far(z)
     # a candidate without a far (no slides possible, or its crossing reaches a scan end)
     # is not cut
-    passed = np.ones(n, bool) if cfg.max_far is None else ~(far > cfg.max_far)
-    return dict(coherent_snr=z, far=far, far_slides=far_slides, far_inverted=far_inverted,
-                pass_far=passed, live_hours=live_hours, z_scale=scale)
+    out["pass_far"] = np.ones(n, bool) if cfg.max_far is None else ~(out["far"] > cfg.max_far)
+    return dict(coherent_snr=z, **out, live_hours=background.slide_hours,
+                z_scale=background.scale)
 
 
 def significance_by_band(snr, timestamps, bore_q, xi, eta, scan, sigma_amp, live, beam_sigma,

@@ -187,9 +187,13 @@ class Background:
         slide_scale = float(np.median(slide_scales)) if slide_scales else 1.0
         slides = np.concatenate([np.asarray(m.background, float) for m in scans] or [[]])
         inverted = np.concatenate([m.inverted for m in scans] or [[]])
-        return cls(slides / slide_scale, sum(m.live_s for m in scans) / 3600.0,
-                   inverted / scale, sum(m.data_live_s for m in scans) / 3600.0, scale,
-                   cfg.tail_from, cfg.background_floor)
+        # each map's maxima were found from the floor in its own units: in the common
+        # units, those of a narrower map can fall below it, and are left out
+        floor = cfg.background_floor
+        slides, inverted = slides / slide_scale, inverted / scale
+        return cls(slides[slides >= floor], sum(m.live_s for m in scans) / 3600.0,
+                   inverted[inverted >= floor], sum(m.data_live_s for m in scans) / 3600.0,
+                   scale, cfg.tail_from, floor)
 
     @classmethod
     def pooled(cls, parts):

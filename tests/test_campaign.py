@@ -126,3 +126,28 @@ def test_units_run_on_mpi_ranks_give_the_same_results(quick, tmp_path):
         ours, pool = (Table.read(folder / "results" / name).pformat(max_lines=-1, max_width=-1)
                       for folder in (out, quick[0]))
         assert ours == pool, name
+
+
+def test_a_prepared_groups_false_alarm_background(quick):
+    """The coherent mode's background on a prepared noise-only group: the searched scans'
+    data and their slides, counted from the floor, in units of the data map's spread."""
+    from so_transients.campaign.config import load_campaign
+    from so_transients.campaign.far_budget import group_background
+    from so_transients.campaign.noise import GroupState, campaign_groups
+    from so_transients.significance import SignificanceConfig
+
+    cfg = load_campaign(QUICK)
+    _, search = cfg.pipeline_steps()
+    group = next(g for g in campaign_groups(cfg) if g.band == "f090")
+    state = GroupState.load(group, quick[0] / "noise" / "groups" / group.label, search)
+    b = group_background(state, search, SignificanceConfig(n_slides=3))
+    duration = 600.0 / 3600
+    # the constant-speed part of the 10 minutes, less the crossings cut by a scan's ends
+    assert 0.5 * duration < b.data_hours < duration
+    # the slides search whole scans, three times over
+    assert 3 * b.data_hours <= b.slide_hours < 3 * 1.3 * b.data_hours
+    assert b.slides.min() >= b.floor and b.inverted.min() >= b.floor
+    assert 1.0 < b.scale < 1.6      # residual atmosphere widens the data's Z (1.19 measured)
+    # about a thousand maxima per hour above Z = 3 at f090 (the far calibration's 30 minutes)
+    assert 100 < len(b.slides) / b.slide_hours < 10_000
+    assert b.far(3.0)["far"][0] > b.far(5.0)["far"][0]

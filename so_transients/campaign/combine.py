@@ -11,17 +11,18 @@ from pathlib import Path
 import numpy as np
 from astropy.table import Table, vstack
 
-from .report import INPUT_TABLES, write_tables
+from .report import INPUT_TABLES, OPTIONAL_TABLES, write_tables
 
 
 def read_results(folder) -> dict:
-    """The input tables of one campaign's results folder (``full_check`` may be absent)."""
+    """The input tables of one campaign's results folder (:data:`.report.OPTIONAL_TABLES`
+    may be absent)."""
     folder = Path(folder)
     tables = {}
     for name in INPUT_TABLES:
         path = folder / f"{name}.ecsv"
         if not path.exists():
-            if name == "full_check":
+            if name in OPTIONAL_TABLES:
                 tables[name] = None
                 continue
             raise ValueError(f"{path} is missing: is {folder} a campaign's results folder of "
@@ -44,7 +45,7 @@ def combine_results(folders, out) -> Path:
         found = [p[name] for p in parts if p[name] is not None and len(p[name])]
         for table in found:
             table.meta.clear()
-        tables[name] = vstack(found) if found else (None if name == "full_check" else
+        tables[name] = vstack(found) if found else (None if name in OPTIONAL_TABLES else
                                                    parts[0][name])
     meta = {"combined_from": [str(Path(f)) for f in folders]}
     return write_tables(out, tables, meta)

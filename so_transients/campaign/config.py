@@ -23,7 +23,9 @@ import yaml
 from ..bands import WHITE_NOISE_MJY
 from ..sim.config import SimConfig
 from ..sim.sources import PLACEMENTS
+from ..significance import SignificanceConfig
 from ..site import TEMPLATE, apply_overrides
+from ..step_config import from_yaml
 from .search_steps import split_pipe
 
 #: Rise times of the paper's grid (section 5.1), seconds.
@@ -178,6 +180,15 @@ class CampaignConfig:
                            self.preprocess_overrides],
                           sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def significance_settings(self):
+        """``transient_significance``'s settings in the preprocess config (with the
+        overrides), or its defaults where the step is not listed: the background of the
+        coherent mode's false-alarm budget (:mod:`.far_budget`)."""
+        pipe = apply_overrides(copy.deepcopy(self.process_pipe), self.preprocess_overrides)
+        entry = next((s for s in pipe if s["name"] == "transient_significance"),
+                     (self.preprocess_overrides or {}).get("transient_significance", {}))
+        return from_yaml(SignificanceConfig, entry.get("calc"), "transient_significance")
 
     def pipeline_steps(self):
         """(standard steps through transient_filter, search steps) of the preprocess config,

@@ -84,13 +84,17 @@ def equal_rate_thresholds(fitted, wafer_hours, x0=3.0, min_snr=5.0, n_boot=200,
     return table
 
 
-def efficiency_at(flares: Table, matched: Table, band_threshold: dict) -> Table:
+def efficiency_at(flares: Table, matched: Table, band_threshold: dict,
+                  column="snr_fit") -> Table:
     """The efficiency table (as :func:`.report.efficiency_table`) with a flare detected only
-    when one of its ``matched`` detections reaches its band's fitted-S/N threshold."""
+    when one of its ``matched`` detections reaches its band's threshold on ``column`` (the
+    fitted S/N; ``map_z`` for the coherent Z)."""
     key = lambda t, band: list(zip(t["obs_id"], t[band], np.asarray(t["t_rise"], float),
                                    np.asarray(t["s_peak"], float), t["source_id"]))
     best = {}
-    for k, snr in zip(key(matched, "bandpass"), np.asarray(matched["snr_fit"], float)):
+    values = (np.asarray(matched[column], float) if column in matched.colnames
+              else np.full(len(matched), np.nan))
+    for k, snr in zip(key(matched, "bandpass"), values):
         best[k] = max(best.get(k, -np.inf), snr)
     rows = []
     cells = sorted({(str(b), float(t), float(s)) for b, t, s in

@@ -4,7 +4,9 @@
   10 / 50 / 90 % levels as guides and the per-sample noise rms of the band marked;
 * ``flux_residuals.png``: fractional (fitted - injected) / injected flux vs S_p per band
   (injected flux at the detection's time), medians per t_r;
-* ``pointing.png``: distribution of fitted-position offsets per band, FWHM and sigma marked.
+* ``pointing.png``: distribution of fitted-position offsets per band, FWHM and sigma marked;
+* ``far_calibration.png`` (coherent mode): the noise-only detections with ``far <= x``
+  against ``x`` times the live time.
 """
 from __future__ import annotations
 
@@ -101,7 +103,32 @@ def plot_pointing(path, residuals):
     _save(fig, path)
 
 
-def write_figures(folder, eff, residuals):
+def plot_far_calibration(path, noise_far, wafer_hours):
+    """Per band: the number of noise-only detections with ``far <= x`` against ``x`` times
+    the band's wafer-band-hours (calibrated: on the line, within its Poisson band)."""
+    bands = sorted(set(np.asarray(noise_far["band"]).astype(str)))
+    fig, axes = _panels(bands)
+    for ax, band in zip(axes, bands):
+        far = np.sort(np.asarray(noise_far["far"][noise_far["band"] == band], float))
+        far = far[np.isfinite(far) & (far > 0)]
+        hours = wafer_hours[band]
+        x = np.logspace(np.log10(max(far.min(), 1e-3) / 3), np.log10(far.max() * 3), 200) \
+            if len(far) else np.logspace(-2, 3, 200)
+        expected = x * hours
+        ax.fill_between(x, np.maximum(expected - np.sqrt(expected), 0.1),
+                        expected + np.sqrt(expected), color="0.85", label="x x live time ± 1σ")
+        ax.plot(x, expected, color="0.4", lw=0.8)
+        ax.step(far, np.arange(1, len(far) + 1), where="post", color="C3",
+                label=f"noise-only detections ({hours:.1f} wafer-band-h)")
+        ax.set(xscale="log", yscale="log", ylim=(0.5, None), title=band,
+               xlabel="far x (per wafer-band-hour)", ylabel="detections with far <= x")
+        ax.legend(fontsize=7, loc="upper left")
+    _save(fig, path)
+
+
+def write_figures(folder, eff, residuals, noise_far=None, wafer_hours=None):
     plot_efficiency(folder / "efficiency.png", eff)
     plot_flux_residuals(folder / "flux_residuals.png", residuals)
     plot_pointing(folder / "pointing.png", residuals)
+    if noise_far is not None and len(noise_far):
+        plot_far_calibration(folder / "far_calibration.png", noise_far, wafer_hours)

@@ -95,6 +95,24 @@ def false_section(false, equal):
     return lines + [""]
 
 
+def far_section(budget):
+    """The coherent mode at a false-alarm budget (:mod:`.far_budget`)."""
+    if budget is None or not len(budget):
+        return []
+    lines = ["## The false-alarm budget on the coherent Z", "",
+             "Background of the noise-only hours (`transient_significance`: time slides and "
+             "the sign-inverted data, `far_background.ecsv`); `z_budget`: the lowest Z whose "
+             "`far` is the paper's rate. Noise-only detections with `map_z` at least that "
+             "high, against the number the budget expects. Thresholds in the next section.",
+             "", "| band | paper's rate | Z at that rate | slides (h) | inverted data (h) "
+             "| noise-only above: measured / expected |", "|---|---:|---:|---:|---:|---:|"]
+    for r in budget:
+        lines.append(f"| {r['band']} | {r['target_per_wbh']:.3f} | {_f(r['z_budget'], '{:.2f}')}"
+                     f" | {r['slide_hours']:.1f} | {r['data_hours']:.2f} | "
+                     f"{r['n_noise_above']} / {r['expected_above']:.2f} |")
+    return lines + [""]
+
+
 def check_section(check):
     if check is None or not len(check):
         return []
@@ -115,11 +133,16 @@ def _cell(value):
 def summary_markdown(tables: dict) -> str:
     """The whole summary from :func:`.report.write_tables`' tables."""
     lines = ["# Injection-recovery campaign", ""]
-    lines += thresholds_section(tables["thresholds"], "Thresholds (detected: fitted S/N >= 5)")
+    lines += thresholds_section(tables["thresholds"], "Thresholds (detected by the search steps "
+                                "as configured: by default fitted S/N >= 5)")
     lines += thresholds_section(tables["thresholds_equal_rate"],
                                 "Thresholds at the paper's false-detection rate")
     lines += flux_section(tables["flux_summary"])
     lines += pointing_section(tables["pointing"])
     lines += false_section(tables["false_positives"], tables["equal_rate"])
+    if tables.get("thresholds_far") is not None:
+        lines += far_section(tables["far_budget"])
+        lines += thresholds_section(tables["thresholds_far"],
+                                    "Thresholds at the paper's rate by the coherent Z's far")
     lines += check_section(tables.get("full_check"))
     return "\n".join(lines)

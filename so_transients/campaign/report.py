@@ -4,7 +4,10 @@ Written to the results folder: ``efficiency.ecsv``, ``thresholds.ecsv``, ``thres
 ``flux_residuals.ecsv`` and its per-t_r ``flux_summary.ecsv``, ``pointing.ecsv``,
 ``false_positives.ecsv``, ``fitted_noise.ecsv`` (every candidate fitted on the noise-only data),
 ``equal_rate.ecsv`` with ``efficiency_equal_rate.ecsv`` and ``thresholds_equal_rate.ecsv``
-(:mod:`.equal_rate`), ``full_check.ecsv`` when the full-pipeline comparison ran, ``summary.md``
+(:mod:`.equal_rate`), ``full_check.ecsv`` when the full-pipeline comparison ran; in coherent
+mode ``far_background.ecsv`` and ``far_live.ecsv`` (the noise-only false-alarm background),
+``far_budget.ecsv`` with ``efficiency_far.ecsv``, ``thresholds_far.ecsv`` and ``noise_far.ecsv``
+(:mod:`.far_budget`); ``summary.md``
 (:mod:`.markdown`: everything above as the README shows it), plus the figures of
 :mod:`.figures`. Units: mJy for
 fluxes, s for times, arcsec for pointing offsets, detections per hour for rates.
@@ -20,6 +23,7 @@ from astropy.table import Table, vstack
 from ..angles import ARCSEC
 from ..bands import get_band
 from .noise import group_info
+from .far_budget import background_tables
 from .stats import LEVELS, binomial_interval, thresholds
 
 #: Clancy et al. 2025, Table 2: S_p (mJy) at 10 / 50 / 90 % efficiency, by band and t_r (s).
@@ -112,7 +116,8 @@ def flux_residual_table(detections: Table) -> Table:
         return Table(names=("bandpass", "t_rise", "s_peak", "flux", "flux_true", "residual",
                             "peak_residual", "nearest_peak"))
     keep = ["source_id", "obs_id", "wafer_slot", "bandpass", "t_rise", "s_peak", "t_peak",
-            "flux", "flux_err", "flux_true", "snr_fit", "n_dets", "dt", "offset", "nearest_peak"]
+            "flux", "flux_err", "flux_true", "snr_fit", "map_z", "n_dets", "dt", "offset",
+            "nearest_peak"]
     out = detections[[c for c in keep if c in detections.colnames]]
     flux_true = np.asarray(out["flux_true"], float)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -228,11 +233,16 @@ def fitted_noise_table(folders: dict) -> Table:
         path = Path(folder) / "fitted_noise.ecsv"
         table = Table.read(path) if path.exists() else Table()
         if len(table):
+            nan = np.full(len(table), np.nan)
             parts.append(Table({"band": np.full(len(table), group.band),
                                 "wafer_slot": np.full(len(table), group.wafer),
-                                "snr_fit": np.asarray(table["snr_fit"], float)}))
+                                "snr_fit": np.asarray(table["snr_fit"], float),
+                                "map_z": np.asarray(table["map_z"], float)
+                                if "map_z" in table.colnames else nan,
+                                "detected": np.asarray(table["detected"], bool)}))
     return (vstack(parts) if parts else
-            Table(names=("band", "wafer_slot", "snr_fit"), dtype=("U8", "U8", float)))
+            Table(names=("band", "wafer_slot", "snr_fit", "map_z", "detected"),
+                  dtype=("U8", "U8", float, float, bool)))
 
 
 def write_results(cfg, folder, flares, detections, folders, check=None) -> Path:
@@ -242,16 +252,22 @@ def write_results(cfg, folder, flares, detections, folders, check=None) -> Path:
     eff["tod_rms"] = [rms.get(b, np.nan) for b in eff["band"]]
     eff["tod_rms"].unit = u.mJy
     eff["tod_rms"].description = "median per-sample white noise of the band's detectors"
+    maxima, live = background_tables(folders)
     tables = dict(flares=flares, efficiency=eff,
                   flux_residuals=flux_residual_table(detections),
                   false_positives=false_positive_table(folders),
-                  fitted_noise=fitted_noise_table(folders), full_check=check)
+                  fitted_noise=fitted_noise_table(folders), full_check=check,
+                  far_background=maxima if len(live) else None,
+                  far_live=live if len(live) else None)
     return write_tables(folder, tables, {"config_digest": cfg.digest()}, cfg.seed)
 
 
 #: What :func:`write_tables` is given (and :mod:`.combine` reads back), besides what it derives.
 INPUT_TABLES = ("flares", "efficiency", "flux_residuals", "false_positives", "fitted_noise",
-                "full_check")
+                "full_check", "far_background", "far_live")
+#: Input tables a campaign may not have: the full-pipeline check, and the false-alarm
+#: background (coherent mode only).
+OPTIONAL_TABLES = ("full_check", "far_background", "far_live")
 
 
 def write_tables(folder, tables: dict, meta: dict, seed=0) -> Path:
@@ -275,11 +291,29 @@ def write_tables(folder, tables: dict, meta: dict, seed=0) -> Path:
     cut = {str(r["band"]): float(r["snr_threshold"]) for r in out["equal_rate"]}
     out["efficiency_equal_rate"] = efficiency_at(out["flares"], residuals, cut)
     out["thresholds_equal_rate"] = threshold_table(out["efficiency_equal_rate"], seed)
+    if out.get("far_live") is not None:
+        out.update(far_budget_tables(out, hours, seed))
     for name, table in out.items():
         if table is not None:
             table.meta.update(meta)
             table.write(folder / f"{name}.ecsv", overwrite=True)
     (folder / "thresholds.md").write_text(thresholds_markdown(out["thresholds"], eff))
     (folder / "summary.md").write_text(summary_markdown(out))
-    write_figures(folder, eff, residuals)
+    write_figures(folder, eff, residuals, out.get("noise_far"), hours)
     return folder
+
+
+def far_budget_tables(tables: dict, wafer_hours: dict, seed=0) -> dict:
+    """The coherent mode at the paper's rate on its false-alarm background
+    (:mod:`.far_budget`): ``far_budget`` (the Z per band and its check), ``efficiency_far``,
+    ``thresholds_far`` and ``noise_far`` (the noise-only detections' far)."""
+    from .equal_rate import efficiency_at
+    from .far_budget import budget_table, noise_far, pooled_backgrounds
+
+    backgrounds = pooled_backgrounds(tables["far_background"], tables["far_live"])
+    budget = budget_table(backgrounds, tables["fitted_noise"], wafer_hours)
+    cut = {str(r["band"]): float(r["z_budget"]) for r in budget}
+    eff = efficiency_at(tables["flares"], tables["flux_residuals"], cut, column="map_z")
+    return dict(far_budget=budget, efficiency_far=eff,
+                thresholds_far=threshold_table(eff, seed),
+                noise_far=noise_far(backgrounds, tables["fitted_noise"]))

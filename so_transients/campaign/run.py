@@ -5,7 +5,8 @@
     campaign.json        the config and its digest; a different config is refused
     noise/sim/<g>/       the noise-only dataset of each group (a sotodlib context), deleted
                          once the group is prepared
-    noise/groups/<g>/    each prepared group (see :mod:`so_transients.campaign.noise`)
+    noise/groups/<g>/    each prepared group (see :mod:`so_transients.campaign.noise`), with
+                         its false-alarm background in coherent mode (:mod:`.far_budget`)
     units/               one pair of ECSV files per (cell, observation) work unit
     results/             the tables, Markdown and figures (:mod:`.report`, :mod:`.figures`)
 
@@ -27,6 +28,7 @@ from tqdm.auto import tqdm
 
 from ..parallel import executor, run_all
 from .config import CampaignConfig, Cell
+from .far_budget import background_done, coherent_search, search_background
 from .full_check import run_full_check
 from .noise import (campaign_groups, false_positives_done, prepare_group,
                     search_false_positives, simulate_group)
@@ -60,14 +62,17 @@ def prepare_noise(cfg, out: Path, progress=True, pool=None):
     Groups are preprocessed and filtered here one at a time (each holds a whole wafer-band
     hour in memory). With a ``pool`` the groups' simulations are submitted there first, so
     the next group is being simulated while this one is preprocessed (mostly single-threaded),
-    and so is the false-positive search of a prepared group, which only reads its files;
-    ``futures`` are those searches (empty without a pool: they ran here).
+    and so is the false-positive search of a prepared group, which only reads its files, and
+    in coherent mode its false-alarm background (:mod:`.far_budget`); ``futures`` are those
+    searches (empty without a pool: they ran here).
     """
     standard, search = cfg.pipeline_steps()
     for step in standard:   # filter threads: as many as the campaign's processes
         if step["name"] == "transient_filter":
             step.setdefault("process", {}).setdefault("workers", cfg.nproc)
     stamp = cfg.noise_digest()
+    settings = dataclasses.asdict(cfg.significance_settings())
+    background = f"{stamp} {json.dumps(settings, sort_keys=True)}"
     groups = campaign_groups(cfg)
     folders = {g: out / "noise" / "groups" / g.label for g in groups}
     sims = NoiseSimulations(cfg, out, [g for g in groups if not _prepared(folders[g], stamp)],
@@ -80,12 +85,17 @@ def prepare_noise(cfg, out: Path, progress=True, pool=None):
             prepare_group(sims.context(group), group, standard, search, folder)
             (folder / "digest.txt").write_text(stamp)
             sims.discard(group)
+        jobs = []
         if not false_positives_done(folder, cfg.inverted, stamp):
-            args = (group, str(folder), search, cfg.inverted, stamp)
+            jobs.append((search_false_positives, group, str(folder), search, cfg.inverted,
+                         stamp))
+        if coherent_search(search) and not background_done(folder, background):
+            jobs.append((search_background, group, str(folder), search, settings, background))
+        for job, *args in jobs:
             if pool is None:
-                search_false_positives(*args)
+                job(*args)
             else:
-                futures.append(pool.submit(search_false_positives, *args))
+                futures.append(pool.submit(job, *args))
     return folders, futures
 
 

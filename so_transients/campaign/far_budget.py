@@ -1,0 +1,170 @@
+"""Detection at a false-alarm budget on the coherent statistic (coherent-mode campaigns).
+
+The paper's search, and the campaign's equal-rate thresholds (:mod:`.equal_rate`), rank
+candidates by the beam fit's S/N, whose noise tail a few wafer-band-hours can only
+extrapolate. The coherent mode's own statistic, ``map_z``, has a measured background:
+``transient_significance``'s time slides and sign-inverted data
+(:class:`so_transients.significance.Background`). When ``transient_find`` runs in coherent
+mode, the campaign computes that background on each whole noise-only group, with the
+preprocess config's ``transient_significance`` settings (its defaults when the step is not
+listed), and keeps it in the group's folder (``background.npz``). Pooled per band (live times
+add), it gives ``far(Z)`` per wafer-band-hour and the lowest Z whose ``far`` is the paper's
+rate (``z_budget``). A flare is detected at that budget when one of its matched detections
+(the search steps as configured: let the fit's ``min_snr`` be low, it only gives flux and
+position) has ``map_z >= z_budget``; the noise-only detections above it are the measured check
+of the rate.
+
+``map_z`` is in units of its own scan's measured spread (in a campaign: the injection
+window's map), the background in units of the group's median spread; the two agree to the
+percent the spread varies between scans.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from astropy import units as u
+from astropy.table import Table
+
+from ..find import FindConfig, group_scans
+from ..scan_geometry import sample_rate
+from ..significance import Background, SignificanceConfig, band_background
+from .equal_rate import PAPER_RATE_PER_WBH
+from .search_steps import step_settings
+
+LIVE_COLUMNS = ("band", "obs_id", "wafer_slot", "slide_hours", "data_hours", "scale",
+                "tail_from", "floor")
+
+
+def coherent_search(search_steps) -> bool:
+    """Whether ``transient_find`` runs in coherent mode among the search steps."""
+    return step_settings(search_steps, FindConfig).mode == "coherent"
+
+
+def group_background(state, search_steps, cfg: SignificanceConfig) -> Background:
+    """The background of one prepared noise-only group (a :class:`.noise.GroupState`) over
+    the scans ``transient_find`` searches."""
+    aman = state.aman
+    where = f"{state.group.obs_id} {state.group.wafer} {state.group.band}"
+    scan, _ = group_scans(state.timestamps, aman.boresight.az, aman.boresight.el,
+                          step_settings(search_steps, FindConfig), where)
+    f = aman.transient_filter
+    dets = np.flatnonzero(~np.asarray(f.dead, bool))
+    if not len(dets):
+        raise ValueError(f"{where}: no live detector for the false-alarm background")
+    return band_background(state.snr, dets, state.timestamps, state.bore_q, state.xi[dets],
+                           state.eta[dets], scan, state.sigma_amp[dets],
+                           float(np.median(np.asarray(f.beam_sigma)[dets])),
+                           sample_rate(state.timestamps, where), cfg)
+
+
+def save_background(background: Background, path, stamp):
+    np.savez(path, slides=background.slides, inverted=background.inverted,
+             live=json.dumps(dict(slide_hours=background.slide_hours,
+                                  data_hours=background.data_hours, scale=background.scale,
+                                  tail_from=background.tail_from, floor=background.floor,
+                                  stamp=stamp)))
+
+
+def load_background(path) -> tuple:
+    """``(Background, stamp)`` saved by :func:`save_background`."""
+    saved = np.load(path)
+    live = json.loads(str(saved["live"]))
+    stamp = live.pop("stamp")
+    return Background(saved["slides"], inverted=saved["inverted"], **live), stamp
+
+
+def background_done(folder, stamp) -> bool:
+    path = Path(folder) / "background.npz"
+    return path.exists() and load_background(path)[1] == stamp
+
+
+def background_tables(folders: dict):
+    """``(maxima, live)``: every group's background maxima (``band``, ``kind``: slides or
+    inverted, ``z``) and live times (:data:`LIVE_COLUMNS`), for the groups that have one."""
+    maxima, live = [], []
+    for group, folder in folders.items():
+        path = Path(folder) / "background.npz"
+        if not path.exists():
+            continue
+        b, _ = load_background(path)
+        for kind, z in (("slides", b.slides), ("inverted", b.inverted)):
+            maxima += [(group.band, kind, float(v)) for v in z]
+        live.append((group.band, group.obs_id, group.wafer, b.slide_hours, b.data_hours,
+                     b.scale, np.nan if b.tail_from is None else b.tail_from, b.floor))
+    maxima = Table(rows=maxima or None, names=("band", "kind", "z"), dtype=("U8", "U8", float))
+    live = Table(rows=live or None, names=LIVE_COLUMNS,
+                 dtype=("U8", "U64", "U8", float, float, float, float, float))
+    live["slide_hours"].unit = live["data_hours"].unit = u.hour
+    return maxima, live
+
+
+def pooled_backgrounds(maxima: Table, live: Table) -> dict:
+    """``{band: Background}`` pooled over the band's groups."""
+    out = {}
+    for band in sorted(set(np.asarray(live["band"]).astype(str))):
+        rows = live[live["band"] == band]
+        mine = maxima[maxima["band"] == band]
+        tail = float(rows["tail_from"][0])
+        out[band] = Background(
+            np.asarray(mine["z"][mine["kind"] == "slides"], float),
+            float(np.sum(rows["slide_hours"])),
+            np.asarray(mine["z"][mine["kind"] == "inverted"], float),
+            float(np.sum(rows["data_hours"])), np.nan,
+            None if not np.isfinite(tail) else tail, float(rows["floor"][0]))
+    return out
+
+
+def budget_table(backgrounds: dict, fitted_noise: Table, wafer_hours: dict) -> Table:
+    """Per band: the Z at the paper's rate, the background behind it, and the noise-only
+    detections at least that high (measured rate per wafer-band-hour beside the target)."""
+    rows = []
+    for band, b in backgrounds.items():
+        target = PAPER_RATE_PER_WBH.get(band, np.nan)
+        z = b.threshold(target) if np.isfinite(target) else np.nan
+        mine = fitted_noise[fitted_noise["band"] == band]
+        found = (np.asarray(mine["detected"], bool) & (np.asarray(mine["map_z"], float) >= z)
+                 if len(mine) else np.zeros(0, bool))
+        hours = wafer_hours.get(band, np.nan)
+        n = int(found.sum())
+        rows.append((band, target, z, b.slide_hours, b.data_hours, len(b.slides),
+                     len(b.inverted), hours, n, n / hours, np.sqrt(max(n, 1)) / hours,
+                     target * hours))
+    table = Table(rows=rows or None,
+                  names=("band", "target_per_wbh", "z_budget", "slide_hours", "data_hours",
+                         "n_slide_maxima", "n_inverted_maxima", "wafer_hours", "n_noise_above",
+                         "noise_rate", "noise_rate_err", "expected_above"),
+                  dtype=("U8", float, float, float, float, int, int, float, int, float, float,
+                         float))
+    for name in ("slide_hours", "data_hours", "wafer_hours"):
+        table[name].unit = u.hour
+    for name in ("target_per_wbh", "noise_rate", "noise_rate_err"):
+        table[name].unit = 1 / u.hour
+    return table
+
+
+def noise_far(backgrounds: dict, fitted_noise: Table) -> Table:
+    """The noise-only detections with the ``far`` their ``map_z`` has (calibration: the
+    number with ``far <= x`` should be ``x`` times the wafer-band-hours)."""
+    keep = (np.asarray(fitted_noise["detected"], bool)
+            & np.isin(np.asarray(fitted_noise["band"]).astype(str), list(backgrounds))
+            if len(fitted_noise) else np.zeros(0, bool))
+    out = fitted_noise[keep]["band", "map_z"] if keep.any() else Table(
+        names=("band", "map_z"), dtype=("U8", float))
+    far = np.full(len(out), np.nan)
+    for band, b in backgrounds.items():
+        sel = np.asarray(out["band"]).astype(str) == band
+        far[sel] = b.far(np.asarray(out["map_z"][sel], float))["far"]
+    out["far"] = far * (1 / u.hour)
+    return out
+
+
+def search_background(group, folder, search_steps, settings: dict, stamp):
+    """Compute and save the background of one prepared group (``settings``:
+    ``transient_significance``'s, as a dict); run in a worker like the false-positive
+    search."""
+    from .noise import GroupState
+    state = GroupState.load(group, folder, search_steps)
+    background = group_background(state, search_steps, SignificanceConfig(**settings))
+    save_background(background, Path(folder) / "background.npz", stamp)

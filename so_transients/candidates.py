@@ -65,6 +65,8 @@ SCHEMA = (
            saved=False),
     Column("map_z", "float", None, _F, "coherent mode: Z of the map maximum, in units of the "
                                        "scan's measured spread (NaN in paper mode)"),
+    Column("n_crossings", "int", None, _F, "crossings whose coherent Z map_z sums: more than "
+                                           "1 for a sweep stack (coherent mode), else 1"),
     Column("pass_n_dets", "bool", None, _C, "enough detectors (min_dets)"),
     Column("pass_aspect_ratio", "bool", None, _C, "detectors form a line along the scan"),
     Column("pass_time_order", "bool", None, _C, "hit times follow a source drifting across"),

@@ -30,6 +30,8 @@ log = logging.getLogger(__name__)
 
 
 MODES = ("paper", "coherent")
+#: ``transient_find``'s scan index per sample in the AxisManager (-1: not searched)
+SCAN_FIELD = "transient_scan"
 
 
 @dataclass
@@ -49,6 +51,8 @@ class FindConfig:
     max_single_share: float = 0.5     # ... veto: one detector makes more of the sum
     max_instant_share: float = 0.5    # ... veto: detectors crossed at one instant make more
     hit_reach: float = 2.0            # ... hits: detectors within this many beam sigmas
+    stack_window: float | None = None  # ... s: crossings stacked (None: no sweep stacking)
+    stack_seed: float = 3.0           # ... stacks start from single-crossing maxima this high
 
     def __post_init__(self):
         positive("transient_find", dbscan_min_samples=self.dbscan_min_samples,
@@ -57,7 +61,8 @@ class FindConfig:
                  archive_slots=self.archive_slots, eps_arcmin=self.eps_arcmin,
                  coherent_threshold=self.coherent_threshold, row_step=self.row_step,
                  max_single_share=self.max_single_share,
-                 max_instant_share=self.max_instant_share, hit_reach=self.hit_reach)
+                 max_instant_share=self.max_instant_share, hit_reach=self.hit_reach,
+                 stack_window=self.stack_window, stack_seed=self.stack_seed)
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {', '.join(MODES)}, got {self.mode!r}")
 
@@ -247,6 +252,7 @@ def find_group_candidates(snr, timestamps, scan, directions, radec, bands, wafer
                                lambda d, s, dets=dets: radec(dets[d], s), eps_by_band[band],
                                cfg, rows=dets, cap=False)
         c["map_z"] = np.full(len(c["scan"]), np.nan)
+        c["n_crossings"] = np.ones(len(c["scan"]), int)
         parts.append(band_part(c, h, dets, band, wafers))
     return merge_bands(parts, cap, where)
 

@@ -35,6 +35,7 @@ from scipy.interpolate import CubicHermiteSpline
 
 from . import candidates, pointing, spectral_ops
 from .angles import ARCMIN, ARCSEC, DEG
+from .find import SCAN_FIELD
 from .motion import flag_moving
 from .robust import mad_std
 from .scan_geometry import constant_velocity, samples_in
@@ -93,6 +94,7 @@ class FitInputs:
     lags: np.ndarray             # the filter's response to a crossing at these lags (s) ...
     response: np.ndarray         # ... (ndet, nlag): each detector's band's
     scanning: np.ndarray = None  # (nsamps,) bool: at the template's scan speed (None: all)
+    scan: np.ndarray = None      # (nsamps,) transient_find's scan index (sweep stacks' fit)
 
     @classmethod
     def from_aman(cls, aman, speed_tolerance=None):
@@ -114,7 +116,8 @@ class FitInputs:
                    np.asarray(summary.dead, bool), np.asarray(summary.beam_sigma),
                    np.asarray(summary.fit_inflation, float), np.asarray(summary.lag),
                    np.atleast_2d(np.asarray(summary.response)),
-                   constant_velocity(t, az, el, speed_tolerance))
+                   constant_velocity(t, az, el, speed_tolerance),
+                   np.asarray(aman[SCAN_FIELD]) if SCAN_FIELD in aman._fields else None)
 
     def kernel(self, dets):
         """``(response, inflation)`` of detectors ``dets`` (one band: they share them)."""
@@ -501,9 +504,7 @@ def fit_group_candidates(data: FitInputs, cands, det_bands, cfg: FitConfig):
     scales = {b: cfg.error_scale or measure_error_scale(
                   data, np.flatnonzero(det_bands == b), cands["t_median"][passed], cfg)
               for b in np.unique(cands["bandpass"][passed])}
-    rows = [fit_at(data, cands["cluster_ra"][c], cands["cluster_dec"][c], cands["t_median"][c],
-                   np.flatnonzero(det_bands == cands["bandpass"][c]),
-                   scales[cands["bandpass"][c]], cfg) if passed[c] else {}
+    rows = [_fit_one(data, cands, c, det_bands, scales, cfg) if passed[c] else {}
             for c in range(n)]
     schema = candidates.BY_NAME
     out = {k: np.array([r.get(k, schema[k].fill) for r in rows], dtype=schema[k].dtype)
@@ -517,6 +518,20 @@ def fit_group_candidates(data: FitInputs, cands, det_bands, cfg: FitConfig):
     pass_far = np.asarray(cands.get("pass_far", np.ones(n, bool)), bool)
     out["detected"] = significant & ~out["moving"] & out["pass_peak_ratio"] & pass_far
     return candidates.check(out, "transient_fit")
+
+
+def _fit_one(data: FitInputs, cands, c, det_bands, scales, cfg: FitConfig):
+    """Candidate ``c``'s fit: :func:`fit_at`, or for a sweep stack (``n_crossings`` > 1) the
+    combined fixed-position fit of its crossings
+    (:func:`so_transients.forced_photometry.stack_fit`)."""
+    from .forced_photometry import stack_fit     # it builds on this module's fits
+    band = cands["bandpass"][c]
+    args = (data, cands["cluster_ra"][c], cands["cluster_dec"][c])
+    dets = np.flatnonzero(det_bands == band)
+    if int(cands.get("n_crossings", np.ones(c + 1, int))[c]) > 1:
+        return stack_fit(*args, cands["t_start"][c], cands["t_stop"][c], dets, scales[band],
+                         cfg)
+    return fit_at(*args, cands["t_median"][c], dets, scales[band], cfg)
 
 
 def peak_ratio_ok(snr_max, snr_fit, max_ratio):

@@ -95,3 +95,33 @@ def measure_crossings(data: FitInputs, ra, dec, times, band_dets, error_scale,
                 offset=np.array([r["offset"] for r in rows], float),
                 n_fit_dets=np.array([r["n_fit_dets"] for r in rows], int),
                 chi2_red=np.array([r["chi2_red"] for r in rows], float))
+
+
+def stack_fit(data: FitInputs, ra, dec, t_lo, t_hi, band_dets, error_scale,
+              fit_cfg: FitConfig) -> dict:
+    """The fit of a sweep stack (``transient_find``'s coherent mode with ``stack_window``):
+    the beam model with the position held at (ra, dec) on each crossing between ``t_lo``
+    and ``t_hi`` (:func:`measure_crossings`), combined with inverse-variance weights into
+    one flux, as the stack assumes a flux steady over its crossings. ``fit_ok`` needs two
+    crossings fitted; the position is the stack's, with the error of a beam centroid at the
+    combined S/N (sqrt(2) beam sigma / S/N per axis); no single ``offset`` (each crossing
+    has its own). Some of :data:`so_transients.fit.OUTPUT_FIELDS` (the rest: their fill)."""
+    if data.scan is None:
+        raise ValueError("a sweep stack's fit needs transient_find's scan index "
+                         "(aman.transient_scan): run transient_find first")
+    live = band_dets[~data.dead[band_dets]]
+    beam = float(np.median(data.beam_sigma[live])) if len(live) else np.nan
+    times, _ = group_crossings(data, data.scan, ra, dec, t_lo - fit_cfg.window,
+                               t_hi + fit_cfg.window, live, 2 * beam)
+    res = measure_crossings(data, ra, dec, times, band_dets, error_scale, fit_cfg,
+                            PhotometryConfig())
+    out = dict(ra=float(ra), dec=float(dec), n_fit_dets=int(res["n_fit_dets"].sum()),
+               error_scale=error_scale, fit_ok=len(res["flux"]) >= 2)
+    if not out["fit_ok"]:
+        return out
+    w = 1.0 / res["flux_err"] ** 2
+    flux, err = float(np.sum(w * res["flux"]) / np.sum(w)), float(1.0 / np.sqrt(np.sum(w)))
+    pos_err = np.sqrt(2.0) * beam / max(abs(flux) / err, 1.0)
+    out.update(flux=flux, flux_err=err, snr_fit=flux / err, chi2_red=float(np.mean(res["chi2_red"])), dec_err=pos_err,
+               ra_err=pos_err / np.cos(dec))
+    return out

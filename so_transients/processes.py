@@ -28,7 +28,7 @@ from .bands import fwhm_to_sigma, sigma_fwhm_by_band
 from .candidates import CAND_AXIS, HIT_AXIS
 from .coherent_find import coherent_group_candidates
 from .cuts import CutsConfig, cut_group_candidates, read_known_sources
-from .find import FindConfig, find_group_candidates, group_scans
+from .find import SCAN_FIELD, FindConfig, find_group_candidates, group_scans
 from .fit import SPEED_TOLERANCE, FitConfig, FitInputs, fit_group_candidates
 from .significance import SignificanceConfig, significance_by_band
 from .matched_filter import FilterConfig, matched_filter, response_kernels
@@ -41,8 +41,9 @@ PSD_BIN_AXIS = "transient_psd_bin"
 PSD_EDGE_AXIS = "transient_psd_edge"
 SLOTS = "archive_slots"      # scalars in aman.transient_candidates: find's archive slots ...
 MIN_DETS = "min_dets"        # ... and detector threshold, for the later steps (and
+STACK_WINDOW = "stack_window"  # ... its sweep stacking (s, NaN: none) and seed Z, for
+STACK_SEED = "stack_seed"      # ... transient_significance, and
 #                              fit.SPEED_TOLERANCE, the scan-speed tolerance)
-SCAN_FIELD = "transient_scan"   # transient_find's scan index per sample (-1: not searched)
 
 
 def _register(cls):
@@ -279,6 +280,8 @@ class TransientFind(_Preprocess):
           max_single_share: 0.5           # veto: one detector makes more of the sum
           max_instant_share: 0.5          # veto: detectors crossed at one instant make more
           hit_reach: 2.0                  # hits: detectors within this many beam sigmas
+          stack_window: null              # s: stack crossings this long (null: no stacking)
+          stack_seed: 3.0                 # stacks start from single-crossing maxima this high
         save: true
 
     ``mode: coherent`` replaces the S/N >= 3 clustering by the maxima of the coherent
@@ -286,7 +289,15 @@ class TransientFind(_Preprocess):
     by the beam and its noise; :mod:`so_transients.coherent_find`), in units of each scan's
     measured spread; ``map_z`` holds it. The DBSCAN settings and ``min_cluster_samples`` are
     then unused; ``min_dets`` is the fewest live detectors a band needs. The cuts and the fit
-    run unchanged on its candidates.
+    run unchanged on its candidates. With ``stack_window`` (seconds) it also stacks the
+    crossings of a sky position within that window (sweep stacking, for flares lasting
+    several sweeps; :mod:`so_transients.sweep_stack`): a stack that reaches
+    ``coherent_threshold`` and beats each of its crossings alone becomes a candidate with
+    ``n_crossings`` > 1, whose hits are its strongest crossing's and whose ``t_start`` /
+    ``t_stop`` span its crossings; ``transient_fit`` fits it with the position held on each
+    crossing and combines the fluxes, and ``transient_significance`` gives it a ``far``
+    from stacks of the sign-inverted maps. ``stack_window`` and ``stack_seed`` are kept in
+    ``aman.transient_candidates`` for those steps.
     """
 
     name = "transient_find"
@@ -329,6 +340,8 @@ class TransientFind(_Preprocess):
         table.wrap(SLOTS, int(self.cfg.archive_slots))
         table.wrap(MIN_DETS, int(self.cfg.min_dets))
         table.wrap(SPEED_TOLERANCE, float(self.cfg.speed_tolerance))
+        table.wrap(STACK_WINDOW, float(self.cfg.stack_window or np.nan))
+        table.wrap(STACK_SEED, float(self.cfg.stack_seed))
         _replace(aman, "transient_candidates", table)
         _replace(aman, "transient_hits", candidates.to_aman(hits, HIT_AXIS, len(hits["cand"])))
         _replace(aman, SCAN_FIELD, scan.astype(np.int32), [(0, "samps")])
@@ -468,7 +481,7 @@ class TransientSignificance(_Preprocess):
             np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta),
             np.asarray(aman[SCAN_FIELD]),
             np.asarray(f.sigma_amp), ~np.asarray(f.dead, bool), np.asarray(f.beam_sigma),
-            bands, rows, self.cfg)
+            bands, rows, self.cfg, _stacking(cands))
         if not live > 0:
             log.warning("%s: %s: no constant-speed scan with live detectors long enough for "
                         "time slides: far not computed (NaN), candidates pass", self.name,
@@ -482,6 +495,12 @@ class TransientSignificance(_Preprocess):
         _replace(cands, "significance_z_scale", scale)
         _save_candidates(self, proc_aman, aman, result)
         return aman, proc_aman
+
+
+def _stacking(cands):
+    """``transient_find``'s sweep stacking (window s, seed Z), or None."""
+    window = float(cands[STACK_WINDOW]) if STACK_WINDOW in cands._fields else np.nan
+    return (window, float(cands[STACK_SEED])) if np.isfinite(window) else None
 
 
 @_register

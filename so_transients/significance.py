@@ -22,16 +22,19 @@ Only the cheap statistic is repeated: the slides reuse the filtered S/N, never t
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 from scipy import ndimage
 
 from . import pointing
 from .coherent import (CrossingGeometry, coherent_map, false_alarm_rate, largest_share,
-                       local_maxima, measured_scale, row_offsets, time_slide_offsets)
+                       local_maxima, measured_scale, row_offsets, row_weights,
+                       time_slide_offsets)
 from .scan_geometry import drift_velocity
 from .scan_geometry import sample_rate as rate_of   # (``sample_rate`` names the Hz below)
 from .step_config import positive
+from .sweep_stack import ScanMap, inverted_stacks, stack_at
 from .tail_model import model_count_above
 
 
@@ -249,38 +252,86 @@ def band_background(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp, bea
 
 
 def group_significance(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp, beam_sigma,
-                       sample_rate, cands, cfg: SignificanceConfig) -> dict:
+                       sample_rate, cands, cfg: SignificanceConfig, stacking=None) -> dict:
     """``coherent_snr``, ``far``, ``far_slides``, ``far_inverted`` and ``pass_far`` of every
-    candidate of one band of a group (``cands``: ``ra``, ``dec``, ``t_median``, ``scan``),
-    and the group's background ``live_hours`` and ``z_scale`` (arguments as
-    :func:`band_background`)."""
+    candidate of one band of a group (``cands``: ``ra``, ``dec``, ``t_median``, ``scan``,
+    and for sweep stacks ``n_crossings``, ``t_start``, ``t_stop``), and the group's
+    background ``live_hours`` and ``z_scale`` (arguments as :func:`band_background`).
+    ``stacking``: ``transient_find``'s sweep stacking (``window``, ``seed``), which its
+    stacks' statistic and background repeat (:func:`stack_significance`)."""
     n = len(cands["scan"])
     stat = np.full(n, np.nan)
+    stacked = np.asarray(cands.get("n_crossings", np.ones(n, int))) > 1
+    maps = [] if stacked.any() and stacking is not None else None
+    live = np.ones(len(dets), bool)
 
-    def visit(s, maps):
-        for c in np.flatnonzero(np.asarray(cands["scan"]) == s):
-            stat[c] = candidate_statistic(maps, bore_q, timestamps, cands["ra"][c],
+    def visit(s, scan_maps):
+        for c in np.flatnonzero((np.asarray(cands["scan"]) == s) & ~stacked):
+            stat[c] = candidate_statistic(scan_maps, bore_q, timestamps, cands["ra"][c],
                                           cands["dec"][c], cands["t_median"][c], beam_sigma,
                                           cfg)
+        if maps is not None:
+            maps.append(stack_map(s, scan_maps, beam_sigma, sigma_amp, live, timestamps))
 
     background = band_background(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp,
                                  beam_sigma, sample_rate, cfg, visit)
     z = stat / background.scale
     out = background.far(z)
+    out["coherent_snr"] = z
+    if maps is not None:
+        for key, values in stack_significance(maps, cands, stacked, bore_q, timestamps,
+                                              beam_sigma, background.data_hours, cfg,
+                                              stacking).items():
+            out[key][stacked] = values
     # a candidate without a far (no slides possible, or its crossing reaches a scan end)
     # is not cut
     out["pass_far"] = np.ones(n, bool) if cfg.max_far is None else ~(out["far"] > cfg.max_far)
-    return dict(coherent_snr=z, **out, live_hours=background.slide_hours,
-                z_scale=background.scale)
+    return dict(**out, live_hours=background.slide_hours, z_scale=background.scale)
+
+
+def stack_map(s, maps: ScanMaps, beam_sigma, sigma_amp, live, timestamps) -> ScanMap:
+    """A scan's data map as sweep stacking reads it, in units of its own measured spread
+    (as ``transient_find``'s stacks are)."""
+    _, norm = row_weights(maps.geometry, maps.rows, beam_sigma, sigma_amp, live)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        flux = maps.z / norm[:, None]
+    last = maps.first + maps.z.shape[1] - 1
+    return ScanMap(int(s), maps.first, maps.geometry, maps.rows,
+                   (maps.z / maps.data_scale).astype(np.float32), flux.astype(np.float32),
+                   norm / maps.data_scale, float(timestamps[maps.first]),
+                   float(timestamps[last]))
+
+
+def stack_significance(maps, cands, stacked, bore_q, timestamps, beam_sigma, data_hours, cfg,
+                       stacking) -> dict:
+    """``coherent_snr`` and ``far`` of the sweep stacks among ``cands`` (``stacked``): the
+    stacked Z over the crossings between their ``t_start`` and ``t_stop``, and the rate of
+    the sign-inverted maps' stacks at least as high (counted, and beyond ``tail_from`` the
+    tail model), over the data's live time; time slides are not stacked (``far_slides``
+    NaN)."""
+    window, seed = stacking
+    reach = cfg.row_step * beam_sigma
+    z = []
+    for c in np.flatnonzero(stacked):
+        res = stack_at(maps, bore_q, cands["ra"][c], cands["dec"][c], cands["t_start"][c] - 1.0,
+                       cands["t_stop"][c] + 1.0, reach)
+        z.append(np.nan if res is None else res["z"])
+    z = np.asarray(z, float)
+    settings = SimpleNamespace(stack_seed=seed, max_single_share=cfg.max_single_share)
+    background = inverted_stacks(maps, bore_q, timestamps, beam_sigma, cfg.row_step, window,
+                                 settings, cfg.background_floor)
+    far = np.where(np.isfinite(z), inverted_rate(z, background, data_hours, cfg.tail_from),
+                   np.nan)
+    return dict(coherent_snr=z, far=far, far_inverted=far, far_slides=np.full(len(z), np.nan))
 
 
 def significance_by_band(snr, timestamps, bore_q, xi, eta, scan, sigma_amp, live, beam_sigma,
-                         bands, cands, cfg: SignificanceConfig):
+                         bands, cands, cfg: SignificanceConfig, stacking=None):
     """``(columns, live_hours, z_scale)``: :func:`group_significance` for each band of a
     group (its detectors and candidates), the ``transient_significance`` columns for every
     candidate (candidates of a band with no live detector: NaN, passing), and the background
     live time and Z scale of the group (the first band's; one band per group in SO's
-    grouping)."""
+    grouping). ``stacking``: ``transient_find``'s sweep stacking (window, seed) or None."""
     n = len(cands["scan"])
     out = dict(coherent_snr=np.full(n, np.nan), far=np.full(n, np.nan),
                far_slides=np.full(n, np.nan), far_inverted=np.full(n, np.nan),
@@ -296,9 +347,12 @@ def significance_by_band(snr, timestamps, bore_q, xi, eta, scan, sigma_amp, live
                    dec=np.asarray(cands["cluster_dec"])[sel],
                    t_median=np.asarray(cands["t_median"])[sel],
                    scan=np.asarray(cands["scan"])[sel])
+        for key in ("n_crossings", "t_start", "t_stop"):
+            if key in cands:
+                sub[key] = np.asarray(cands[key])[sel]
         res = group_significance(snr, dets, timestamps, bore_q, xi[dets], eta[dets], scan,
                                  sigma_amp[dets], float(np.median(beam_sigma[dets])), fs, sub,
-                                 cfg)
+                                 cfg, stacking)
         for k in out:
             out[k][sel] = res[k]
         if not np.isfinite(live_hours):

@@ -1,0 +1,171 @@
+"""Sweep stacking: the coherent statistic of one sky position summed over several crossings.
+
+A slow flare (t_r of minutes) is crossed by a wafer on several sweeps while it is bright; each
+crossing alone may stay below the coherent mode's threshold. For a flux steady over the
+crossings ``k`` of a window, the maximum-likelihood estimate and its S/N combine the single
+crossings' (:mod:`so_transients.coherent`): with ``n_k`` the inverse flux noise of crossing
+``k`` (the row's ``sqrt(sum_d b_d^2 / sigma_d^2)`` over the map's measured spread) and ``Z_k``
+its normalized Z at the position,
+
+    S = sum_k n_k^2 S_k / sum_k n_k^2,   Z = sum_k n_k Z_k / sqrt(sum_k n_k^2),
+    sigma_S = 1 / sqrt(sum_k n_k^2).
+
+``Z_k`` is read at the position (nearest row, the sample it passes the wafer's centre), not
+maximized around it, so the stacked Z of noise keeps unit spread. Positions are seeds: every
+scan's local maxima at least ``stack_seed`` that no glitch veto removes (a slow flare bright
+enough to stack above the threshold almost always gives one of its crossings Z >= 3). Each
+seed is stacked over the crossings within ``stack_window`` seconds centred on it; a stack is
+kept when it reaches ``coherent_threshold``, is higher than every single crossing in it (the
+single-crossing search already has the rest), and no single crossing makes more than
+``max_single_share`` of its sum (a glitch stacked with noise). Of stacks within two beam
+sigmas of each other whose windows overlap, the highest is kept.
+
+Everything here is on arrays (maps, boresight quaternions); no AxisManager.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from types import SimpleNamespace
+
+import numpy as np
+
+from . import pointing
+from .angles import sky_separation
+from .coherent import local_maxima
+
+
+@dataclass
+class ScanMap:
+    """What stacking keeps of one scan's coherent map."""
+
+    scan: int
+    first: int                 # first sample of the scan in the group
+    geometry: object           # its CrossingGeometry
+    rows: np.ndarray           # cross-scan offsets of the rows, rad
+    z: np.ndarray              # (nrow, nsamp) Z in units of the map's measured spread
+    flux: np.ndarray           # (nrow, nsamp) flux estimate, mJy
+    n: np.ndarray              # (nrow,) inverse flux noise of each row, 1/mJy
+    t_lo: float                # ctime of the scan's first and last samples
+    t_hi: float
+
+
+@dataclass
+class Crossing:
+    """A position's crossing of one scan's map."""
+
+    scan: int
+    sample: int                # group sample at which it passes the wafer's centre
+    row: int                   # the map's row nearest it
+    z: float
+    flux: float
+    n: float
+
+
+def sky_position(geometry, across, bore_q, sample):
+    """RA, Dec (rad) of the sky position at cross-scan offset ``across`` that passes the
+    wafer's centre at ``sample``."""
+    (ux, uy), (x0, y0) = geometry.direction, geometry.centre
+    ra, dec = pointing.radec_of_samples(bore_q, [x0 - across * uy], [y0 + across * ux], [0],
+                                        [sample])
+    return float(ra[0]), float(dec[0])
+
+
+def crossing_of(m: ScanMap, bore_q, ra, dec, row_reach):
+    """The :class:`Crossing` of (ra, dec) in the map ``m``, or None when its path misses the
+    map (further than ``row_reach`` rad from every row, or reaching past a scan end)."""
+    nsamp = m.z.shape[1]
+    g = m.geometry
+    sample = m.first + nsamp // 2
+    for _ in range(2):         # the position passes the centre along / speed after sample
+        xi, eta = pointing.source_in_focal_plane(bore_q[[sample]], ra, dec)
+        along, across = g.point_offsets(xi[0], eta[0])
+        t0 = sample - m.first - int(round(along / g.speed * g.sample_rate))
+        if not 0 <= t0 < nsamp:
+            return None
+        sample = m.first + t0
+    row = int(np.argmin(np.abs(m.rows - across)))
+    z = m.z[row, t0]
+    if abs(m.rows[row] - across) > row_reach or not np.isfinite(z):
+        return None
+    return Crossing(m.scan, sample, row, float(z), float(m.flux[row, t0]), float(m.n[row]))
+
+
+def stack(crossings) -> dict:
+    """``z``, ``flux``, ``flux_err`` (mJy) and ``share`` (the largest single crossing's share
+    of the sum) of a steady source over ``crossings``."""
+    n = np.array([c.n for c in crossings])
+    z = np.array([c.z for c in crossings])
+    flux = np.array([c.flux for c in crossings])
+    terms = n * z
+    total = terms.sum()
+    share = terms.max() / total if total > 0 else 1.0
+    return dict(z=float(total / np.sqrt(np.sum(n**2))),
+                flux=float(np.sum(n**2 * flux) / np.sum(n**2)),
+                flux_err=float(1.0 / np.sqrt(np.sum(n**2))), share=float(share))
+
+
+def stack_seeds(maps, seeds, bore_q, timestamps, beam_sigma, row_step, window_s, cfg):
+    """Stacked candidates of one band: for each seed ``(scan, sample, ra, dec)`` (group
+    sample), the stack over the crossings of the maps within ``window_s`` centred on it.
+    Returns dicts with ``ra``, ``dec``, ``z``, ``flux``, ``flux_err``, ``share`` and
+    ``crossings`` (a list of :class:`Crossing`), highest Z first, neighbours suppressed."""
+    found = []
+    for scan, sample, ra, dec in seeds:
+        t = timestamps[sample]
+        near = [m for m in maps if m.t_hi >= t - window_s / 2 and m.t_lo <= t + window_s / 2]
+        crossings = [c for c in (crossing_of(m, bore_q, ra, dec, row_step * beam_sigma)
+                                 for m in near) if c is not None]
+        if len(crossings) < 2:
+            continue
+        res = stack(crossings)
+        best_single = max(c.z for c in crossings)
+        if (res["z"] >= cfg.coherent_threshold and res["z"] > best_single
+                and res["share"] <= cfg.max_single_share):
+            found.append(dict(ra=ra, dec=dec, crossings=crossings, **res))
+    return suppress(found, timestamps, 2.0 * beam_sigma)
+
+
+def inverted_stacks(maps, bore_q, timestamps, beam_sigma, row_step, window_s, cfg,
+                    floor):
+    """Z of the stacks of the sign-inverted maps (every correlation between detectors and
+    sweeps kept, no source) from ``floor`` up, seeded and selected as the data's are, less the
+    single-crossing glitch vetoes (they need the S/N, not kept): the background of stacked
+    candidates over the maps' live time."""
+    flipped = [ScanMap(m.scan, m.first, m.geometry, m.rows, -m.z, -m.flux, m.n, m.t_lo,
+                       m.t_hi) for m in maps]
+    seeds = []
+    for m in flipped:
+        window = m.geometry.crossing_samples(beam_sigma)
+        r, s = local_maxima(m.z, cfg.stack_seed, window)
+        seeds += [(m.scan, m.first + int(t), *sky_position(m.geometry, m.rows[row], bore_q,
+                                                           m.first + int(t)))
+                  for row, t in zip(r, s)]
+    settings = SimpleNamespace(coherent_threshold=floor, max_single_share=cfg.max_single_share)
+    return np.array([s["z"] for s in stack_seeds(flipped, seeds, bore_q, timestamps,
+                                                 beam_sigma, row_step, window_s, settings)])
+
+
+def stack_at(maps, bore_q, ra, dec, t_lo, t_hi, row_reach):
+    """:func:`stack` of (ra, dec) over the maps between ctimes ``t_lo`` and ``t_hi`` (None
+    when fewer than two crossings are found)."""
+    crossings = [c for c in (crossing_of(m, bore_q, ra, dec, row_reach) for m in maps
+                             if m.t_hi >= t_lo and m.t_lo <= t_hi) if c is not None]
+    return stack(crossings) if len(crossings) >= 2 else None
+
+
+def suppress(stacks, timestamps, radius):
+    """The highest of stacks within ``radius`` (rad) of each other whose crossings overlap
+    in time."""
+    kept = []
+    for s in sorted(stacks, key=lambda s: -s["z"]):
+        span = _span(s, timestamps)
+        if not any(sky_separation(s["ra"], s["dec"], k["ra"], k["dec"]) <= radius
+                   and span[0] <= _span(k, timestamps)[1]
+                   and _span(k, timestamps)[0] <= span[1] for k in kept):
+            kept.append(s)
+    return kept
+
+
+def _span(s, timestamps):
+    t = timestamps[[c.sample for c in s["crossings"]]]
+    return t.min(), t.max()

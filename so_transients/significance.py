@@ -28,8 +28,8 @@ import numpy as np
 from scipy import ndimage
 
 from . import pointing
-from .coherent import (CrossingGeometry, coherent_map, false_alarm_rate, largest_share,
-                       local_maxima, measured_scale, row_offsets, row_weights,
+from .coherent import (CrossingGeometry, coherent_map, false_alarm_rate, finite_snr,
+                       largest_share, local_maxima, measured_scale, row_offsets, row_weights,
                        time_slide_offsets)
 from .scan_geometry import drift_velocity
 from .scan_geometry import sample_rate as rate_of   # (``sample_rate`` names the Hz below)
@@ -91,7 +91,9 @@ def scan_maps(snr, geometry, beam_sigma, sigma_amp, live, first, cfg: Significan
               rng) -> ScanMaps:
     """The data's map and the slides' background of one scan (``snr``: its samples)."""
     rows = row_offsets(geometry, beam_sigma, cfg.row_step)
-    z, _ = coherent_map(snr, geometry, rows, beam_sigma, sigma_amp, live)
+    snr = finite_snr(snr)                # once for the data's map and every slide's
+    z, _ = coherent_map(snr, geometry, rows, beam_sigma, sigma_amp, live, with_flux=False,
+                        finite=True)
     out = ScanMaps(first, geometry, rows, z, measured_scale(z))
     nsamp = snr.shape[1]
     window = geometry.crossing_samples(beam_sigma)
@@ -103,7 +105,8 @@ def scan_maps(snr, geometry, beam_sigma, sigma_amp, live, first, cfg: Significan
         return out
     for _ in range(cfg.n_slides):
         offsets = time_slide_offsets(snr.shape[0], nsamp, min_shift, rng)
-        slid, _ = coherent_map(snr, geometry, rows, beam_sigma, sigma_amp, live, offsets)
+        slid, _ = coherent_map(snr, geometry, rows, beam_sigma, sigma_amp, live, offsets,
+                               with_flux=False, finite=True)
         scale = measured_scale(slid)
         r, s = local_maxima(slid, cfg.background_floor * scale, window)
         # a slide moves a bright source's (or a glitch's) detector spikes apart: each makes

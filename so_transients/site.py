@@ -63,15 +63,15 @@ def check_config(config_path):
                          f"{config_path.parent}` again")
 
 
-def site_config(dataset, template=TEMPLATE, overrides=None) -> dict:
+def site_config(dataset, template=TEMPLATE, overrides=None, results=None) -> dict:
     """The preprocess config ``template`` pointed at ``dataset`` (its context.yaml), with the
-    archive and plots in ``<dataset>/preprocess``, as absolute paths (see the module's note).
-    ``overrides``: {step name: {section: dict}} merged into the matching ``process_pipe``
-    entries."""
+    archive and plots in ``results`` (default ``<dataset>/preprocess``), as absolute paths
+    (see the module's note). ``overrides``: {step name: {section: dict}} merged into the
+    matching ``process_pipe`` entries."""
     dataset = dataset_context(dataset).parent
     with open(template) as f:
         cfg = yaml.safe_load(f)
-    out = dataset / "preprocess"
+    out = Path(results).resolve() if results is not None else dataset / "preprocess"
     cfg["context_file"] = str(dataset / "context.yaml")
     cfg["plot_dir"] = str(out / "plots")
     cfg["archive"]["index"] = str(out / "process_archive.sqlite")
@@ -92,9 +92,10 @@ def apply_overrides(process_pipe, overrides=None):
     return process_pipe
 
 
-def write_site_config(dataset, path=None, template=TEMPLATE, overrides=None) -> Path:
+def write_site_config(dataset, path=None, template=TEMPLATE, overrides=None,
+                      results=None) -> Path:
     """Write :func:`site_config` to ``path`` (default ``<dataset>/preprocess.yaml``)."""
-    cfg = site_config(dataset, template, overrides)
+    cfg = site_config(dataset, template, overrides, results)
     path = Path(path or Path(dataset) / "preprocess.yaml")
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "w") as f:

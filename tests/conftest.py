@@ -45,6 +45,16 @@ def noisy_dataset(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def two_flare_dataset(tmp_path_factory):
+    """Five minutes of w16 at f090 (every noise component) with two bright flares; tests
+    that run the site pipeline on it write their configs and archives elsewhere
+    (``write_site_config(..., path=..., results=...)``)."""
+    return run_sim(tmp_path_factory.mktemp("two_flares"), seed=41,
+                   observation={"duration": 300.0}, instrument={"bands": ["f090"]},
+                   flares={"n": 2, "s_peak_mjy": [1500, 2500], "t_rise": [2, 20]})
+
+
+@pytest.fixture(scope="session")
 def bright_source_dataset(tmp_path_factory):
     """One MF wafer at f090 with white noise only, a 50 Jy steady source and a bright flare,
     each placed exactly on the path of a chosen detector."""

@@ -103,16 +103,14 @@ def coherent_pipe():
 
 
 @pytest.fixture(scope="module")
-def coherent_site_run(tmp_path_factory):
+def coherent_site_run(tmp_path_factory, two_flare_dataset):
     """Five minutes of w16 at f090 with two flares, the shipped config in coherent mode."""
     from so_transients.site import run_site_pipeline, write_site_config
 
-    from conftest import run_sim
     root = tmp_path_factory.mktemp("coherent")
-    sim = run_sim(root, seed=41, observation={"duration": 300.0},
-                  instrument={"bands": ["f090"]},
-                  flares={"n": 2, "s_peak_mjy": [1500, 2500], "t_rise": [2, 20]})
-    config = write_site_config(root, overrides=COHERENT)
+    sim = two_flare_dataset
+    config = write_site_config(sim.context.parent, path=root / "preprocess.yaml",
+                               overrides=COHERENT, results=root / "preprocess")
     run_site_pipeline(config)
     return sim, config
 

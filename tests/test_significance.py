@@ -24,13 +24,12 @@ def with_significance(process_pipe, **calc):
 
 
 @pytest.fixture(scope="module")
-def significance_run(tmp_path_factory):
+def significance_run(tmp_path_factory, two_flare_dataset):
     """Five minutes of w16 at f090, two bright flares; the site pipeline with the step."""
     root = tmp_path_factory.mktemp("significance")
-    sim = run_sim(root, seed=41, observation={"duration": 300.0},
-                  instrument={"bands": ["f090"]},
-                  flares={"n": 2, "s_peak_mjy": [1500, 2500], "t_rise": [2, 20]})
-    config = write_site_config(root)
+    sim = two_flare_dataset
+    config = write_site_config(sim.context.parent, path=root / "preprocess.yaml",
+                               results=root / "preprocess")
     cfg = yaml.safe_load(config.read_text())
     cfg["process_pipe"] = with_significance(cfg["process_pipe"])
     config.write_text(yaml.safe_dump(cfg, sort_keys=False))

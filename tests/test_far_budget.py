@@ -92,3 +92,11 @@ def test_flares_and_noise_are_counted_at_the_budgets_z():
                      "snr_fit": [3.3, 9.0, 4.0], "map_z": [z + 0.1, z - 1.0, z - 0.1]})
     assert efficiency_at(flares, matched, {"f090": z}, column="map_z")["detected"][0] == 1
     assert efficiency_at(flares, matched, {"f090": 5.0})["detected"][0] == 1
+
+
+def test_a_background_too_short_for_the_budget_is_named(caplog):
+    short = {"f150": Background(np.array([3.5, 4.0]), 1.0, np.zeros(0), 0.5, tail_from=None)}
+    fitted = Table({"band": ["f150"], "map_z": [5.0], "snr_fit": [4.0], "detected": [True]})
+    table = budget_table(short, fitted, {"f150": 0.5})
+    assert np.isnan(table["z_budget"][0]) and table["n_noise_above"][0] == 0
+    assert "f150" in caplog.text and "cannot resolve" in caplog.text

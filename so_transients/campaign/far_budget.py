@@ -21,6 +21,7 @@ percent the spread varies between scans.
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +34,7 @@ from ..significance import Background, SignificanceConfig, band_background
 from .equal_rate import PAPER_RATE_PER_WBH
 from .search_steps import step_settings
 
+log = logging.getLogger(__name__)
 LIVE_COLUMNS = ("band", "obs_id", "wafer_slot", "slide_hours", "data_hours", "scale",
                 "tail_from", "floor")
 
@@ -123,6 +125,11 @@ def budget_table(backgrounds: dict, fitted_noise: Table, wafer_hours: dict) -> T
     for band, b in backgrounds.items():
         target = PAPER_RATE_PER_WBH.get(band, np.nan)
         z = b.threshold(target) if np.isfinite(target) else np.nan
+        if np.isfinite(target) and not np.isfinite(z):
+            log.warning("%s: %.1f h of slides and %.2f h of inverted data cannot resolve the "
+                        "paper's rate of %.3f per wafer-band-hour: no thresholds at a "
+                        "false-alarm budget (more noise-only hours or n_slides)", band,
+                        b.slide_hours, b.data_hours, target)
         mine = fitted_noise[fitted_noise["band"] == band]
         found = (np.asarray(mine["detected"], bool) & (np.asarray(mine["map_z"], float) >= z)
                  if len(mine) else np.zeros(0, bool))

@@ -11,6 +11,11 @@ coherent mode with ``stack_window`` and ``transient_significance``, and counts, 
 flux, the flares with a candidate within 1' whose ``far`` is within ``--budget`` (per
 wafer-band-hour; the paper's rate by default): by single crossings alone, and with stacks.
 Candidates within the budget that match no flare are the false ones. Prints a table.
+
+``--noise-only K`` checks the stacks' ``far`` instead: K observations without flares, and
+the number of stacked candidates (passing the cuts) with ``far <= x`` against ``x`` times
+the hours searched, for a few ``x`` (stacks exist only from ``coherent_threshold`` up, so
+the count stops growing at the ``far`` of Z = 4.5).
 """
 import argparse
 import logging
@@ -46,15 +51,15 @@ def pipe(window):
     return steps
 
 
-def search(flux, args, tmp):
-    """Candidates of one simulated observation with ``args.n`` flares of peak ``flux``, and
-    the flares' truth."""
+def search(flux, args, tmp, seed=None, n=None):
+    """Candidates of one simulated observation with ``n`` (default ``args.n``) flares of peak
+    ``flux``, and the flares' truth."""
     sim = simulate(SimConfig.from_dict({
-        "output": tmp, "seed": args.seed + int(flux),
+        "output": tmp, "seed": args.seed + int(flux) if seed is None else seed,
         "observation": {"duration": 60.0 * args.minutes},
         "instrument": {"tubes": ["i1"], "wafers": ["w16"], "bands": ["f090"]},
         "glitches": {"enabled": True},
-        "flares": {"n": args.n, "s_peak_mjy": [flux, flux],
+        "flares": {"n": args.n if n is None else n, "s_peak_mjy": [max(flux, 1.0)] * 2,
                    "t_rise": [args.t_rise, args.t_rise]}}), progress=False)
     ctx = core.Context(str(sim.context))
     aman = ctx.get_obs(sim.obs_ids[0], dets={"wafer_slot": "w16", "bandpass": "f090"})
@@ -75,6 +80,24 @@ def count(cands, flares, budget, stacks):
     return int(np.sum(np.any(near[within], axis=0))), int(np.sum(within & ~near.any(axis=1)))
 
 
+def noise_only(args):
+    """The stacks' far on ``args.noise_only`` observations without flares."""
+    far, hours = [], 0.0
+    for k in range(args.noise_only):
+        with tempfile.TemporaryDirectory() as tmp:
+            cands, _ = search(0.0, args, tmp, seed=args.seed + 1000 + k, n=0)
+        stacked = (cands["n_crossings"] > 1) & np.asarray(cands["passed"], bool)
+        far.extend(np.asarray(cands["far"], float)[stacked])
+        hours += args.minutes / 60
+        print(f"observation {k}: {stacked.sum()} stacks", flush=True)
+    far = np.asarray(far)
+    print(f"\n{'x (1/h)':>9}{'stacks with far <= x':>22}{'x T':>8}")
+    for x in (0.1, 0.3, 1.0, 3.0, 10.0, 30.0):
+        print(f"{x:>9g}{int(np.sum(far <= x)):>22d}{x * hours:>8.2f}")
+    print(f"\n{hours:g} h of w16 at f090 without flares; stack_window {args.window:g} s.")
+    return 0
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--flux", type=float, nargs="+", default=[60.0, 90.0, 120.0],
@@ -86,7 +109,11 @@ def main(argv=None):
     parser.add_argument("--budget", type=float, default=2 / 24,
                         help="max far per wafer-band-hour (default: the paper's rate)")
     parser.add_argument("--seed", type=int, default=50)
+    parser.add_argument("--noise-only", type=int, default=0, metavar="K",
+                        help="check the stacks' far on K observations without flares instead")
     args = parser.parse_args(argv)
+    if args.noise_only:
+        return noise_only(args)
     print(f"{'S_p (mJy)':>10}{'flares':>8}{'single':>8}{'stacked':>9}"
           f"{'false single':>14}{'false stacked':>15}{'min':>6}")
     for flux in args.flux:

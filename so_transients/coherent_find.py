@@ -108,12 +108,14 @@ def vetoed(snr, geometry, weights, beam_sigma, peak_rows, peak_samples, cfg):
     return out
 
 
-def scan_map(snr, geometry, beam_sigma, sigma_amp, live, cfg):
+def scan_map(snr, geometry, beam_sigma, sigma_amp, live, cfg, with_flux=True):
     """``(rows, z, flux, n, weights)`` of one scan: the rows' cross-scan offsets, Z in units of
-    the map's measured spread, the flux estimate (mJy), each row's inverse flux noise (1/mJy,
-    in the same units) and the detectors' weights in each row."""
+    the map's measured spread, the flux estimate (mJy; None without ``with_flux``), each
+    row's inverse flux noise (1/mJy, in the same units) and the detectors' weights in each
+    row."""
     rows = row_offsets(geometry, beam_sigma, cfg.row_step)
-    z, flux = coherent_map(snr, geometry, rows, beam_sigma, sigma_amp, live)
+    z, flux = coherent_map(snr, geometry, rows, beam_sigma, sigma_amp, live,
+                           with_flux=with_flux)
     scale = measured_scale(z)
     weights, norm = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
     return rows, z / scale, flux, norm / scale, weights
@@ -147,7 +149,9 @@ def scan_candidates(snr, first, geometry, beam_sigma, sigma_amp, live, cfg, keep
     the map position (``row`` offset, ``sample`` in the group), ``map_z``, and ``hit_dets``,
     ``hit_samples``, ``hit_snr`` (:func:`hit_terms`). ``keep(rows, z, flux, n, r, s)``, when
     given, receives the map and its maxima from ``cfg.stack_seed`` (sweep stacking)."""
-    rows, z, flux, n, weights = scan_map(snr, geometry, beam_sigma, sigma_amp, live, cfg)
+    # the flux map is needed only by sweep stacking
+    rows, z, flux, n, weights = scan_map(snr, geometry, beam_sigma, sigma_amp, live, cfg,
+                                         with_flux=keep is not None)
     low = cfg.coherent_threshold if keep is None else min(cfg.stack_seed, cfg.coherent_threshold)
     r, s = peaks(snr, geometry, z, weights, beam_sigma, low, cfg)
     if keep is not None:

@@ -122,6 +122,7 @@ def stack_fit(data: FitInputs, ra, dec, t_lo, t_hi, band_dets, error_scale,
     w = 1.0 / res["flux_err"] ** 2
     flux, err = float(np.sum(w * res["flux"]) / np.sum(w)), float(1.0 / np.sqrt(np.sum(w)))
     pos_err = np.sqrt(2.0) * beam / max(abs(flux) / err, 1.0)
-    out.update(flux=flux, flux_err=err, snr_fit=flux / err, chi2_red=float(np.mean(res["chi2_red"])), dec_err=pos_err,
+    out.update(flux=flux, flux_err=err, snr_fit=flux / err,
+               chi2_red=float(np.mean(res["chi2_red"])), dec_err=pos_err,
                ra_err=pos_err / np.cos(dec))
     return out

@@ -34,7 +34,7 @@ from .coherent import (CrossingGeometry, coherent_map, false_alarm_rate, finite_
 from .scan_geometry import drift_velocity
 from .scan_geometry import sample_rate as rate_of   # (``sample_rate`` names the Hz below)
 from .step_config import positive
-from .sweep_stack import ScanMap, inverted_stacks, stack_at
+from .sweep_stack import ScanMap, inverted_stacks, map_cell, stack_at
 from .tail_model import model_count_above
 
 
@@ -156,11 +156,7 @@ def candidate_statistic(maps: ScanMaps, bore_q, timestamps, ra, dec, t_cand, bea
     position (ra, dec) seen at ``t_cand`` (NaN when outside the map)."""
     g = maps.geometry
     i = int(np.clip(np.searchsorted(timestamps, t_cand), 0, len(timestamps) - 1))
-    xi, eta = pointing.source_in_focal_plane(bore_q[[i]], ra, dec)
-    along, across = g.point_offsets(xi[0], eta[0])
-    # the source drifts along +direction: it passed the centre along/speed before t_cand
-    t0 = i - maps.first - int(round(along / g.speed * g.sample_rate))
-    row = int(np.argmin(np.abs(maps.rows - across)))
+    row, t0, _ = map_cell(g, maps.rows, maps.first, bore_q, ra, dec, i)
     half = int(round(cfg.peak_window * beam_sigma / g.speed * g.sample_rate))
     lo, hi = max(t0 - half, 0), min(t0 + half + 1, maps.z.shape[1])
     if hi <= lo:
@@ -200,18 +196,6 @@ class Background:
         return cls(slides[slides >= floor], sum(m.live_s for m in scans) / 3600.0,
                    inverted[inverted >= floor], sum(m.data_live_s for m in scans) / 3600.0,
                    scale, cfg.tail_from, floor)
-
-    @classmethod
-    def pooled(cls, parts):
-        """Several groups' backgrounds of one band as one (live times add; same settings)."""
-        parts = list(parts)
-        if not parts:
-            raise ValueError("no background to pool")
-        return cls(np.concatenate([p.slides for p in parts] or [[]]),
-                   sum(p.slide_hours for p in parts),
-                   np.concatenate([p.inverted for p in parts] or [[]]),
-                   sum(p.data_hours for p in parts), np.nan, parts[0].tail_from,
-                   parts[0].floor)
 
     def far(self, z) -> dict:
         """``far``, ``far_slides`` and ``far_inverted`` (per hour of the wafer-band) of the
@@ -316,8 +300,8 @@ def stack_significance(maps, cands, stacked, bore_q, timestamps, beam_sigma, dat
     reach = cfg.row_step * beam_sigma
     z = []
     for c in np.flatnonzero(stacked):
-        res = stack_at(maps, bore_q, cands["ra"][c], cands["dec"][c], cands["t_start"][c] - 1.0,
-                       cands["t_stop"][c] + 1.0, reach)
+        res = stack_at(maps, bore_q, cands["ra"][c], cands["dec"][c],
+                       cands["t_start"][c] - 1.0, cands["t_stop"][c] + 1.0, reach)
         z.append(np.nan if res is None else res["z"])
     z = np.asarray(z, float)
     settings = SimpleNamespace(stack_seed=seed, max_single_share=cfg.max_single_share)

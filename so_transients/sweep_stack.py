@@ -70,20 +70,28 @@ def sky_position(geometry, across, bore_q, sample):
     return float(ra[0]), float(dec[0])
 
 
+def map_cell(geometry, rows, first, bore_q, ra, dec, sample):
+    """``(row, t0, across)`` of (ra, dec) on a scan's map (rows ``rows``, its first sample
+    group sample ``first``) from where the position is in the focal plane at group sample
+    ``sample``: the nearest row's index, the map sample at which it passes the wafer's
+    centre (it drifts along +direction, so it passed the centre along / speed before
+    ``sample``; possibly outside the map) and its cross-scan offset (rad)."""
+    xi, eta = pointing.source_in_focal_plane(bore_q[[sample]], ra, dec)
+    along, across = geometry.point_offsets(xi[0], eta[0])
+    t0 = sample - first - int(round(along / geometry.speed * geometry.sample_rate))
+    return int(np.argmin(np.abs(rows - across))), t0, float(across)
+
+
 def crossing_of(m: ScanMap, bore_q, ra, dec, row_reach):
     """The :class:`Crossing` of (ra, dec) in the map ``m``, or None when its path misses the
     map (further than ``row_reach`` rad from every row, or reaching past a scan end)."""
     nsamp = m.z.shape[1]
-    g = m.geometry
     sample = m.first + nsamp // 2
-    for _ in range(2):         # the position passes the centre along / speed after sample
-        xi, eta = pointing.source_in_focal_plane(bore_q[[sample]], ra, dec)
-        along, across = g.point_offsets(xi[0], eta[0])
-        t0 = sample - m.first - int(round(along / g.speed * g.sample_rate))
+    for _ in range(2):         # from the scan's middle, then from the crossing found
+        row, t0, across = map_cell(m.geometry, m.rows, m.first, bore_q, ra, dec, sample)
         if not 0 <= t0 < nsamp:
             return None
         sample = m.first + t0
-    row = int(np.argmin(np.abs(m.rows - across)))
     z = m.z[row, t0]
     if abs(m.rows[row] - across) > row_reach or not np.isfinite(z):
         return None

@@ -43,9 +43,14 @@ def test_a_background_too_short_for_the_rate_has_no_threshold():
     assert b.threshold(0.6) == pytest.approx(4.0, abs=0.01)
 
 
-def test_pooled_backgrounds_add_live_time_and_keep_the_rate():
+def test_pooled_backgrounds_add_live_time_and_keep_the_rate(tmp_path):
     parts = [_background(seed=s) for s in range(3)]
-    pooled = Background.pooled(parts)
+    folders = {}
+    for k, part in enumerate(parts):
+        (tmp_path / f"g{k}").mkdir()
+        save_background(part, tmp_path / f"g{k}" / "background.npz", "stamp")
+        folders[Group("obs", f"w{k}", "f090")] = tmp_path / f"g{k}"
+    pooled = pooled_backgrounds(*background_tables(folders))["f090"]
     assert pooled.slide_hours == pytest.approx(3 * parts[0].slide_hours)
     assert pooled.data_hours == pytest.approx(3 * parts[0].data_hours)
     assert len(pooled.slides) == sum(len(p.slides) for p in parts)

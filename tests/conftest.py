@@ -36,6 +36,23 @@ def run_sim(path, **sections):
     return simulate(config, progress=False)
 
 
+#: A 3 Jy flare at 120 s on the path of one w16 f090 detector.
+BRIGHT_FLARE = {"at_detector": "w16_f090_p100A", "at_time": 120.0, "t_peak": 120.0,
+                "s_peak_mjy": 3000.0, "t_rise": 5.0}
+
+
+def run_imperfect_sim(path, flare, duration, dead_mode="nan", seed=43):
+    """One MF wafer at f090 with ``flare`` (a flares-list entry) and imperfect detectors:
+    16 % dead (``dead_mode``: zeros or NaN), 2 % ten times noisier, 200 cosmic-ray glitches
+    per hour."""
+    return run_sim(path, seed=seed, observation={"duration": duration},
+                   instrument={"bands": ["f090"]},
+                   detector_yield={"dead_fraction": 0.16, "dead_mode": dead_mode,
+                                   "noisy_fraction": 0.02, "noisy_factor": 10.0},
+                   glitches={"enabled": True, "rate_per_hour": 200},
+                   flares={"list": [flare]})
+
+
 @pytest.fixture(scope="session")
 def noisy_dataset(tmp_path_factory):
     """Five minutes of one MF wafer (both bands) with every noise component on."""

@@ -177,15 +177,9 @@ def test_coherent_mode_holds_on_imperfect_detectors(tmp_path, dead_mode):
     through the transient steps alone (no standard step cuts the bad detectors first): the
     3 Jy flare is detected, every candidate's Z is finite, and no dead detector is a hit."""
     from so_transients import candidates
-    from conftest import load_group, run_sim, run_steps
+    from conftest import BRIGHT_FLARE, load_group, run_imperfect_sim, run_steps
 
-    sim = run_sim(tmp_path, seed=43, observation={"duration": 240.0},
-                  instrument={"bands": ["f090"]},
-                  detector_yield={"dead_fraction": 0.16, "dead_mode": dead_mode,
-                                  "noisy_fraction": 0.02, "noisy_factor": 10.0},
-                  glitches={"enabled": True, "rate_per_hour": 200},
-                  flares={"list": [{"at_detector": "w16_f090_p100A", "at_time": 120.0,
-                                    "t_peak": 120.0, "s_peak_mjy": 3000.0, "t_rise": 5.0}]})
+    sim = run_imperfect_sim(tmp_path, BRIGHT_FLARE, 240.0, dead_mode)
     aman = load_group(sim, band="f090")
     run_steps(aman, [s for s in coherent_pipe()
                      if s["name"] in candidates.STEPS or s["name"] == "transient_filter"])

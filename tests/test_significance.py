@@ -10,7 +10,7 @@ from so_transients import candidates
 from so_transients.results import archive_table
 from so_transients.site import TEMPLATE, failed_groups, run_site_pipeline, write_site_config
 
-from conftest import load_group, run_sim, run_steps
+from conftest import BRIGHT_FLARE, load_group, run_imperfect_sim, run_steps
 
 STEP = {"name": "transient_significance", "calc": {"n_slides": 10}, "save": True}
 
@@ -81,13 +81,7 @@ def test_imperfect_detectors_keep_a_bright_flare_significant(tmp_path, dead_mode
     glitches, through the transient steps alone (none of the standard steps that would cut
     bad detectors first) with significance: the bright flare is detected with a finite Z
     beyond every background maximum, and the Z scale stays finite."""
-    sim = run_sim(tmp_path, seed=43, observation={"duration": 240.0},
-                  instrument={"bands": ["f090"]},
-                  detector_yield={"dead_fraction": 0.16, "dead_mode": dead_mode,
-                                  "noisy_fraction": 0.02, "noisy_factor": 10.0},
-                  glitches={"enabled": True, "rate_per_hour": 200},
-                  flares={"list": [{"at_detector": "w16_f090_p100A", "at_time": 120.0,
-                                    "t_peak": 120.0, "s_peak_mjy": 3000.0, "t_rise": 5.0}]})
+    sim = run_imperfect_sim(tmp_path, BRIGHT_FLARE, 240.0, dead_mode)
     pipe = yaml.safe_load(TEMPLATE.read_text())["process_pipe"]
     aman = load_group(sim, band="f090")
     run_steps(aman, with_significance([s for s in pipe if s["name"] in candidates.STEPS

@@ -7,7 +7,7 @@ from so_transients import candidates
 from so_transients.site import apply_overrides
 from so_transients.sweep_stack import Crossing, stack
 
-from conftest import load_group, run_sim, run_steps
+from conftest import load_group, run_imperfect_sim, run_sim, run_steps
 from test_coherent_find import coherent_pipe
 
 ARCMIN = np.pi / 180 / 60
@@ -123,12 +123,7 @@ def test_stacking_holds_on_imperfect_detectors(tmp_path):
     """16 % dead detectors (NaN), 2 % ten times noisier and 200 glitches per hour, the
     transient steps alone: every Z is finite, the slow flare is stacked, its fit and far are
     finite, and no dead detector is a hit."""
-    sim = run_sim(tmp_path, seed=43, observation={"duration": 600.0},
-                  instrument={"bands": ["f090"]},
-                  detector_yield={"dead_fraction": 0.16, "dead_mode": "nan",
-                                  "noisy_fraction": 0.02, "noisy_factor": 10.0},
-                  glitches={"enabled": True, "rate_per_hour": 200},
-                  flares={"list": [{**FLARE, "s_peak_mjy": 110.0}]})
+    sim = run_imperfect_sim(tmp_path, {**FLARE, "s_peak_mjy": 110.0}, 600.0)
     cands, near, aman = search(sim, STACKING)
     assert np.all(np.isfinite(cands["map_z"]))
     stacks = np.flatnonzero(near & (cands["n_crossings"] > 1))

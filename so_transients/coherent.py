@@ -126,27 +126,55 @@ def finite_snr(snr):
     return snr if np.isfinite(snr).all() else np.nan_to_num(snr)
 
 
+#: Samples of the map summed at a time: every row's block of the accumulator (50 rows x 4096
+#: x 8 bytes) stays in cache while all detectors are added to it.
+SHIFT_ADD_BLOCK = 4096
+
+
 @njit(cache=True, nogil=True)
 def _shift_add(snr, weights, used, shifts, acc):
     """``acc[r, t] += weights[r, d] * snr[d, (t + shifts[d]) % nsamp]`` over the detectors
     ``used`` and the rows where their weight is not 0 (``snr`` finite)."""
     nrow, nsamp = acc.shape
+    first, last = _weighted_rows(weights, used)
+    # block by block in time, so that the accumulator's rows are read from cache (2-4x
+    # faster than a whole row per detector); each sum still adds the detectors in order
+    for t0 in range(0, nsamp, SHIFT_ADD_BLOCK):
+        t1 = min(t0 + SHIFT_ADD_BLOCK, nsamp)
+        for k in range(len(used)):
+            d = used[k]
+            s = shifts[d] % nsamp
+            wrap = max(t0, nsamp - s)        # from here the source index wraps around
+            for r in range(first[k], last[k] + 1):
+                w = weights[r, d]
+                if w != 0.0:
+                    _add_slice(acc[r], snr[d], w, t0, min(t1, wrap), s)
+                    _add_slice(acc[r], snr[d], w, wrap, t1, s - nsamp)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _add_slice(row, src, w, lo, hi, shift):
+    """``row[lo:hi] += w * src[lo + shift:hi + shift]`` as a plain loop over two slices
+    (which the compiler vectorizes)."""
+    if hi <= lo:
+        return
+    head, tail = row[lo:hi], src[lo + shift:hi + shift]
+    for t in range(hi - lo):
+        head[t] += w * tail[t]
+
+
+@njit(cache=True, nogil=True)
+def _weighted_rows(weights, used):
+    """First and last row where each detector of ``used`` has a weight (last < first: none)."""
+    nrow = weights.shape[0]
+    first = np.full(len(used), nrow, np.int64)
+    last = np.full(len(used), -1, np.int64)
     for k in range(len(used)):
-        d = used[k]
-        s = shifts[d] % nsamp
-        src = snr[d]
         for r in range(nrow):
-            w = weights[r, d]
-            if w == 0.0:
-                continue
-            # two plain slices, not one index modulo nsamp: the compiler then vectorizes
-            # the loops (2.8x faster, the same sums in the same order)
-            head, tail = acc[r, :nsamp - s], src[s:]
-            for t in range(nsamp - s):
-                head[t] += w * tail[t]
-            wrap = acc[r, nsamp - s:]
-            for t in range(s):
-                wrap[t] += w * src[t]
+            if weights[r, used[k]] != 0.0:
+                first[k] = min(first[k], r)
+                last[k] = r
+    return first, last
 
 
 def largest_share(snr, geometry: CrossingGeometry, rows, beam_sigma, sigma_amp, live,

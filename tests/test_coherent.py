@@ -3,9 +3,9 @@ import numpy as np
 
 from so_transients.angles import ARCMIN
 from so_transients.significance import SignificanceConfig
-from so_transients.coherent import (CrossingGeometry, coherent_map, false_alarm_rate,
-                                    local_maxima, measured_scale, row_offsets,
-                                    time_slide_offsets)
+from so_transients.coherent import (SHIFT_ADD_BLOCK, CrossingGeometry, coherent_map,
+                                    false_alarm_rate, local_maxima, measured_scale, row_offsets,
+                                    row_weights, time_slide_offsets)
 
 FS = 200.0
 SIGMA_BEAM = 0.94 * ARCMIN               # f090 beam sigma
@@ -83,6 +83,25 @@ def test_a_time_slide_removes_the_source_and_keeps_the_noise():
     assert np.nanmax(z) > 40
     assert np.nanmax(slid) < 6                     # no alignment left
     assert abs(measured_scale(slid) - 1) < 0.1
+
+
+def test_the_shift_and_add_is_a_weighted_sum_of_cyclically_shifted_streams():
+    """Against the sum written out with np.roll, on a scan several of the kernel's time
+    blocks long, with slides past either end and a dead detector."""
+    rng = np.random.default_rng(3)
+    geometry, sigma = wafer(n_side=6, rng=rng)
+    live = np.ones(len(sigma), bool)
+    live[4] = False
+    nsamp = 3 * SHIFT_ADD_BLOCK + 123
+    snr = rng.standard_normal((len(sigma), nsamp)).astype(np.float32)
+    rows = row_offsets(geometry, SIGMA_BEAM, ROW_STEP)
+    offsets = rng.integers(-nsamp, 2 * nsamp, len(sigma))
+    z, _ = coherent_map(snr, geometry, rows, SIGMA_BEAM, sigma, live, offsets)
+    weights, norm = row_weights(geometry, rows, SIGMA_BEAM, sigma, live)
+    shifts = geometry.lag_samples + offsets
+    expected = np.array([sum(w[d] * np.roll(snr[d].astype(float), -shifts[d])
+                             for d in np.flatnonzero(w)) for w in weights]) / norm[:, None]
+    assert np.allclose(z, expected, rtol=1e-12, atol=1e-12)
 
 
 def test_a_glitch_on_every_detector_at_one_instant_stays_incoherent():

@@ -450,7 +450,7 @@ class TransientSignificance(_Preprocess):
 
       - name: transient_significance
         calc:
-          n_slides: 20                    # background live time: 20 x the data's
+          n_slides: 20                    # background live time: 20 x the data's (0: none)
           min_slide_s: 2.0                # every detector shifted at least this far
           row_step: 0.8                   # beam sigmas between rows of positions
           background_floor: 3.0           # background maxima counted from this Z
@@ -482,7 +482,7 @@ class TransientSignificance(_Preprocess):
             np.asarray(aman[SCAN_FIELD]),
             np.asarray(f.sigma_amp), ~np.asarray(f.dead, bool), np.asarray(f.beam_sigma),
             bands, rows, self.cfg, _stacking(cands))
-        if not live > 0:
+        if self.cfg.n_slides and not live > 0:
             log.warning("%s: %s: no constant-speed scan with live detectors long enough for "
                         "time slides: far not computed (NaN), candidates pass", self.name,
                         GroupName(aman))

@@ -33,7 +33,7 @@ from .coherent import (CrossingGeometry, coherent_map, false_alarm_rate, finite_
                        time_slide_offsets)
 from .scan_geometry import drift_velocity
 from .scan_geometry import sample_rate as rate_of   # (``sample_rate`` names the Hz below)
-from .step_config import positive
+from .step_config import ConfigError, positive
 from .sweep_stack import ScanMap, inverted_stacks, map_cell, stack_at
 from .tail_model import model_count_above
 
@@ -41,6 +41,7 @@ from .tail_model import model_count_above
 @dataclass
 class SignificanceConfig:
     n_slides: int = 20               # time slides per scan: background live time / data's
+    #                                  (0: none; far from the sign-inverted data alone)
     min_slide_s: float = 2.0         # every detector is shifted at least this far
     row_step: float = 0.8            # beam sigmas between rows of positions
     background_floor: float = 3.0    # background maxima counted from this Z
@@ -53,8 +54,10 @@ class SignificanceConfig:
     max_opposite_ratio: float = 2.0  # ... this many times higher are its filter sidelobe
 
     def __post_init__(self):
-        positive("transient_significance", n_slides=self.n_slides,
-                 min_slide_s=self.min_slide_s, row_step=self.row_step,
+        if self.n_slides < 0:
+            raise ConfigError(f"transient_significance: n_slides must be 0 or more, got "
+                              f"{self.n_slides}")
+        positive("transient_significance", min_slide_s=self.min_slide_s, row_step=self.row_step,
                  peak_window=self.peak_window, max_far=self.max_far, tail_from=self.tail_from,
                  sidelobe_window=self.sidelobe_window,
                  max_opposite_ratio=self.max_opposite_ratio)

@@ -49,6 +49,33 @@ def test_every_output_is_written(quick):
     assert false["n_inverted"].sum() == sum(c["n_false_inverted"] for c in counts)
 
 
+def test_a_false_alarm_budget_keeps_only_detections_below_it(quick):
+    """``far_budget`` in paper mode: each group's background of 100 slides, every detection's
+    coherent_snr, and a flare detected at the budget only where the fit detected it."""
+    out, _ = quick
+    results = out / "results"
+    budget = Table.read(results / "far_budget.ecsv")
+    assert set(budget["band"]) == {"f090", "f220"} and set(budget["statistic"]) == {"coherent_snr"}
+    # the slides search whole scans: at least n_slides times the data's live time
+    assert np.all(budget["slide_hours"] >= 100 * budget["data_hours"])
+    assert np.all(np.isfinite(budget["z_budget"])) and np.all(budget["z_budget"] > 3)
+    assert all((g / "background.npz").exists() for g in (out / "noise" / "groups").iterdir())
+    res = Table.read(results / "flux_residuals.ecsv")
+    assert np.mean(np.isfinite(res["coherent_snr"])) > 0.9
+    key = lambda t: [(str(b), float(r), float(p)) for b, r, p in
+                     zip(t["band"], t["t_rise"], t["s_peak"])]
+    eff, at_budget = (Table.read(results / f"{name}.ecsv")
+                      for name in ("efficiency", "efficiency_far"))
+    assert key(eff) == key(at_budget)
+    assert np.all(at_budget["detected"] <= eff["detected"])
+    bright = (eff["band"] == "f090") & (eff["s_peak"] == 1200)
+    # a 1.2 Jy flare's Z (beyond 15) is far above the budget's: detected all the same
+    assert np.all(at_budget["detected"][bright] >= 0.8 * eff["detected"][bright])
+    # every noise-only detection is in the calibration table, with the far of its Z
+    fitted = Table.read(results / "fitted_noise.ecsv")
+    assert len(Table.read(results / "noise_far.ecsv")) == np.sum(fitted["detected"])
+
+
 def test_efficiency_rises_with_peak_flux_within_errors(quick):
     eff = Table.read(quick[0] / "results" / "efficiency.ecsv")
     assert set(eff["injected"]) == {20}

@@ -1,5 +1,7 @@
 """Detection at a false-alarm budget: the background's far, its threshold, pooling, the
-campaign's recount on ``map_z``."""
+campaign's recount on ``map_z`` (coherent mode) or ``coherent_snr`` (paper mode)."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 from astropy.table import Table
@@ -9,7 +11,9 @@ from so_transients.campaign.far_budget import (background_tables, budget_table,
                                                load_background, noise_far,
                                                pooled_backgrounds, save_background)
 from so_transients.campaign.noise import Group
-from so_transients.significance import Background
+from so_transients.significance import Background, SignificanceConfig
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def _gaussian_maxima(hours, rate_above_3, rng):
@@ -105,3 +109,32 @@ def test_a_background_too_short_for_the_budget_is_named(caplog):
     table = budget_table(short, fitted, {"f150": 0.5})
     assert np.isnan(table["z_budget"][0]) and table["n_noise_above"][0] == 0
     assert "f150" in caplog.text and "cannot resolve" in caplog.text
+
+
+@pytest.mark.parametrize("mode, far_budget, statistic", [
+    ("paper", None, None), ("paper", True, "coherent_snr"), ("coherent", None, "map_z"),
+    ("coherent", False, None)])
+def test_the_budget_ranks_each_mode_by_its_coherent_statistic(mode, far_budget, statistic):
+    from so_transients.campaign.config import load_campaign
+
+    cfg = load_campaign(ROOT / "configs" / "campaign_quick.yaml",
+                        {"far_budget": far_budget,
+                         "preprocess_overrides": {"transient_find": {"calc": {"mode": mode}}}})
+    assert cfg.far_statistic() == statistic
+    names = [s["name"] for s in cfg.pipeline_steps()[1]]
+    if statistic == "coherent_snr":
+        # the paper mode's candidates get their Z before the fit, without slides or a cut
+        assert names == ["transient_find", "transient_cuts", "transient_significance",
+                         "transient_fit"]
+        calc = cfg.pipeline_steps()[1][2]["calc"]
+        assert calc["n_slides"] == 0 and calc["max_far"] is None
+    else:
+        assert "transient_significance" not in names
+
+
+def test_slides_cannot_be_negative():
+    from so_transients.step_config import ConfigError
+
+    assert SignificanceConfig(n_slides=0).n_slides == 0
+    with pytest.raises(ConfigError, match="transient_significance: n_slides"):
+        SignificanceConfig(n_slides=-1)

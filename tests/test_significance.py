@@ -69,6 +69,26 @@ def test_max_far_cuts_and_a_background_too_short_is_named(significance_run, capl
                for r in caplog.records)
 
 
+def test_without_slides_far_rests_on_the_inverted_data(significance_run, caplog):
+    """``n_slides: 0`` (what a paper-mode campaign runs in its windows): the same coherent_snr
+    as with slides, far from the sign-inverted data alone, and no warning about slides."""
+    sim, config = significance_run
+    with_slides = archive_table(config, detected_only=False)
+    aman = load_group(sim, band="f090")
+    pipe = yaml.safe_load(config.read_text())["process_pipe"]
+    with caplog.at_level(logging.WARNING):
+        run_steps(aman, with_significance([s for s in pipe if s["name"] != STEP["name"]],
+                                          n_slides=0))
+    cands = candidates.from_aman(aman.transient_candidates, candidates.CAND_AXIS)
+    ours = np.asarray(cands["coherent_snr"])[np.argsort(cands["cand_id"])]
+    theirs = np.asarray(with_slides["coherent_snr"])[np.argsort(with_slides["cand_id"])]
+    assert len(ours) == len(theirs) and np.allclose(ours, theirs, equal_nan=True)
+    assert np.all(np.isnan(cands["far_slides"]))
+    finite = np.isfinite(cands["coherent_snr"])
+    assert finite.any() and np.array_equal(cands["far"][finite], cands["far_inverted"][finite])
+    assert not [r for r in caplog.records if "slides" in r.message]
+
+
 def test_without_the_step_candidates_pass_far(tmp_path):
     rows = candidates.table({"cand_id": np.array([0]), "bandpass": np.array(["f090"])})
     assert bool(rows["pass_far"][0]) and np.isnan(rows["far"][0])

@@ -21,12 +21,13 @@ import numpy as np
 import yaml
 
 from ..bands import WHITE_NOISE_MJY
+from ..find import FindConfig
 from ..sim.config import SimConfig
 from ..sim.sources import PLACEMENTS
 from ..significance import SignificanceConfig
 from ..site import TEMPLATE, apply_overrides
 from ..step_config import from_yaml
-from .search_steps import split_pipe
+from .search_steps import split_pipe, step_settings, with_coherent_snr
 
 #: Rise times of the paper's grid (section 5.1), seconds.
 PAPER_RISE_TIMES = (0.5, 1.0, 2.5, 5.0, 15.0, 30.0, 150.0, 300.0)
@@ -121,6 +122,8 @@ class CampaignConfig:
     injection: Injection = field(default_factory=Injection)
     full_check: FullCheck = field(default_factory=FullCheck)
     inverted: bool = True            # also count false positives on sign-inverted data
+    far_budget: bool | None = None   # detect at the paper's rate by the coherent Z's far
+    #                                  (None: in coherent mode; see far_statistic)
 
     def __post_init__(self):
         self.sim = SimConfig.from_dict({"seed": self.seed, **self.simulation})
@@ -157,14 +160,16 @@ class CampaignConfig:
 
     def digest(self) -> str:
         """Hash of everything that changes results (not the output folder or process count).
-        The default flare placement and light-curve index are left out, so configs written
-        before them keep their hash."""
+        The default flare placement, light-curve index and false-alarm budget are left
+        out, so configs written before them keep their hash."""
         data = dataclasses.asdict(self)
         data.pop("output")
         data.pop("nproc")
         for key in ("placement", "flare_eta"):
             if getattr(self.injection, key) == getattr(Injection(), key):
                 data["injection"].pop(key)
+        if self.far_budget is None:
+            data.pop("far_budget")
         data["preprocess"] = self.process_pipe
         text = json.dumps(data, sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
@@ -192,9 +197,24 @@ class CampaignConfig:
 
     def pipeline_steps(self):
         """(standard steps through transient_filter, search steps) of the preprocess config,
-        with the campaign's overrides applied (fresh copies: callers may change them)."""
+        with the campaign's overrides applied (fresh copies: callers may change them). With a
+        false-alarm budget in paper mode the search steps also give every candidate its
+        ``coherent_snr`` (:func:`.search_steps.with_coherent_snr`)."""
         pipe = apply_overrides(copy.deepcopy(self.process_pipe), self.preprocess_overrides)
-        return split_pipe(pipe)
+        standard, search = split_pipe(pipe)
+        if self.far_statistic() == "coherent_snr":
+            search = with_coherent_snr(search, self.significance_settings())
+        return standard, search
+
+    def far_statistic(self):
+        """What the false-alarm budget (:mod:`.far_budget`) ranks detections by: ``map_z``
+        in coherent mode, ``coherent_snr`` in paper mode, None without a budget
+        (``far_budget``; by default a budget in coherent mode only)."""
+        pipe = apply_overrides(copy.deepcopy(self.process_pipe), self.preprocess_overrides)
+        coherent = step_settings(split_pipe(pipe)[1], FindConfig).mode == "coherent"
+        if not (coherent if self.far_budget is None else self.far_budget):
+            return None
+        return "map_z" if coherent else "coherent_snr"
 
 
 SECTIONS = {"matching": Matching, "injection": Injection, "full_check": FullCheck}

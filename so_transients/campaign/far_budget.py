@@ -1,22 +1,28 @@
-"""Detection at a false-alarm budget on the coherent statistic (coherent-mode campaigns).
+"""Detection at a false-alarm budget on the coherent statistic, in either search mode.
 
 The paper's search, and the campaign's equal-rate thresholds (:mod:`.equal_rate`), rank
 candidates by the beam fit's S/N, whose noise tail a few wafer-band-hours can only
-extrapolate. The coherent mode's own statistic, ``map_z``, has a measured background:
-``transient_significance``'s time slides and sign-inverted data
-(:class:`so_transients.significance.Background`). When ``transient_find`` runs in coherent
-mode, the campaign computes that background on each whole noise-only group, with the
-preprocess config's ``transient_significance`` settings (its defaults when the step is not
-listed), and keeps it in the group's folder (``background.npz``). Pooled per band (live times
-add), it gives ``far(Z)`` per wafer-band-hour and the lowest Z whose ``far`` is the paper's
-rate (``z_budget``). A flare is detected at that budget when one of its matched detections
-(the search steps as configured: let the fit's ``min_snr`` be low, it only gives flux and
-position) has ``map_z >= z_budget``; the noise-only detections above it are the measured check
-of the rate.
+extrapolate. The coherent statistic Z has a measured background: ``transient_significance``'s
+time slides and sign-inverted data (:class:`so_transients.significance.Background`). With a
+budget (``far_budget`` in the campaign config; on by default in coherent mode) the campaign
+computes that background on each whole noise-only group, with the preprocess config's
+``transient_significance`` settings (its defaults when the step is not listed), and keeps it
+in the group's folder (``background.npz``). Pooled per band (live times add), it gives
+``far(Z)`` per wafer-band-hour and the lowest Z whose ``far`` is the paper's rate
+(``z_budget``). A flare is detected at that budget when one of its matched detections (the
+search steps as configured) has a statistic at least ``z_budget``; the noise-only detections
+above it are the measured check of the rate. The statistic (``CampaignConfig.far_statistic``):
 
-``map_z`` is in units of its own scan's measured spread (in a campaign: the injection
-window's map), the background in units of the group's median spread; the two agree to the
-percent the spread varies between scans.
+* coherent mode: ``map_z``, the candidate's own map maximum (let the fit's ``min_snr`` be
+  low: the fit only gives flux and position);
+* paper mode: ``coherent_snr``, the highest Z near the candidate, as ``transient_significance``
+  gives it (the search steps run that step without slides,
+  :func:`.search_steps.with_coherent_snr`); the fit's S/N >= 5 still decides ``detected``, so
+  a flare is detected as the site pipeline with ``max_far`` at the paper's rate would.
+
+Either is in units of its own scan's measured spread (in a campaign: the injection window's
+map), the background in units of the group's median spread; the two agree to the percent the
+spread varies between scans.
 """
 from __future__ import annotations
 
@@ -37,11 +43,6 @@ from .search_steps import step_settings
 log = logging.getLogger(__name__)
 LIVE_COLUMNS = ("band", "obs_id", "wafer_slot", "slide_hours", "data_hours", "scale",
                 "tail_from", "floor")
-
-
-def coherent_search(search_steps) -> bool:
-    """Whether ``transient_find`` runs in coherent mode among the search steps."""
-    return step_settings(search_steps, FindConfig).mode == "coherent"
 
 
 def group_background(state, search_steps, cfg: SignificanceConfig) -> Background:
@@ -118,9 +119,11 @@ def pooled_backgrounds(maxima: Table, live: Table) -> dict:
     return out
 
 
-def budget_table(backgrounds: dict, fitted_noise: Table, wafer_hours: dict) -> Table:
+def budget_table(backgrounds: dict, fitted_noise: Table, wafer_hours: dict,
+                 column="map_z") -> Table:
     """Per band: the Z at the paper's rate, the background behind it, and the noise-only
-    detections at least that high (measured rate per wafer-band-hour beside the target)."""
+    detections whose statistic ``column`` is at least that high (measured rate per
+    wafer-band-hour beside the target)."""
     rows = []
     for band, b in backgrounds.items():
         target = PAPER_RATE_PER_WBH.get(band, np.nan)
@@ -131,19 +134,19 @@ def budget_table(backgrounds: dict, fitted_noise: Table, wafer_hours: dict) -> T
                         "false-alarm budget (more noise-only hours or n_slides)", band,
                         b.slide_hours, b.data_hours, target)
         mine = fitted_noise[fitted_noise["band"] == band]
-        found = (np.asarray(mine["detected"], bool) & (np.asarray(mine["map_z"], float) >= z)
+        found = (np.asarray(mine["detected"], bool) & (np.asarray(mine[column], float) >= z)
                  if len(mine) else np.zeros(0, bool))
         hours = wafer_hours.get(band, np.nan)
         n = int(found.sum())
-        rows.append((band, target, z, b.slide_hours, b.data_hours, len(b.slides),
+        rows.append((band, column, target, z, b.slide_hours, b.data_hours, len(b.slides),
                      len(b.inverted), hours, n, n / hours, np.sqrt(max(n, 1)) / hours,
                      target * hours))
     table = Table(rows=rows or None,
-                  names=("band", "target_per_wbh", "z_budget", "slide_hours", "data_hours",
-                         "n_slide_maxima", "n_inverted_maxima", "wafer_hours", "n_noise_above",
-                         "noise_rate", "noise_rate_err", "expected_above"),
-                  dtype=("U8", float, float, float, float, int, int, float, int, float, float,
-                         float))
+                  names=("band", "statistic", "target_per_wbh", "z_budget", "slide_hours",
+                         "data_hours", "n_slide_maxima", "n_inverted_maxima", "wafer_hours",
+                         "n_noise_above", "noise_rate", "noise_rate_err", "expected_above"),
+                  dtype=("U8", "U16", float, float, float, float, int, int, float, int, float,
+                         float, float))
     for name in ("slide_hours", "data_hours", "wafer_hours"):
         table[name].unit = u.hour
     for name in ("target_per_wbh", "noise_rate", "noise_rate_err"):
@@ -151,18 +154,18 @@ def budget_table(backgrounds: dict, fitted_noise: Table, wafer_hours: dict) -> T
     return table
 
 
-def noise_far(backgrounds: dict, fitted_noise: Table) -> Table:
-    """The noise-only detections with the ``far`` their ``map_z`` has (calibration: the
-    number with ``far <= x`` should be ``x`` times the wafer-band-hours)."""
+def noise_far(backgrounds: dict, fitted_noise: Table, column="map_z") -> Table:
+    """The noise-only detections with the ``far`` their statistic ``column`` has
+    (calibration: the number with ``far <= x`` should be ``x`` times the wafer-band-hours)."""
     keep = (np.asarray(fitted_noise["detected"], bool)
             & np.isin(np.asarray(fitted_noise["band"]).astype(str), list(backgrounds))
             if len(fitted_noise) else np.zeros(0, bool))
-    out = fitted_noise[keep]["band", "map_z"] if keep.any() else Table(
-        names=("band", "map_z"), dtype=("U8", float))
+    out = fitted_noise[keep]["band", column] if keep.any() else Table(
+        names=("band", column), dtype=("U8", float))
     far = np.full(len(out), np.nan)
     for band, b in backgrounds.items():
         sel = np.asarray(out["band"]).astype(str) == band
-        far[sel] = b.far(np.asarray(out["map_z"][sel], float))["far"]
+        far[sel] = b.far(np.asarray(out[column][sel], float))["far"]
     out["far"] = far * (1 / u.hour)
     return out
 

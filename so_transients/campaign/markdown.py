@@ -99,11 +99,13 @@ def far_section(budget):
     """The coherent mode at a false-alarm budget (:mod:`.far_budget`)."""
     if budget is None or not len(budget):
         return []
+    statistic = str(budget["statistic"][0])
     lines = ["## The false-alarm budget on the coherent Z", "",
              "Background of the noise-only hours (`transient_significance`: time slides and "
              "the sign-inverted data, `far_background.ecsv`); `z_budget`: the lowest Z whose "
-             "`far` is the paper's rate. Noise-only detections with `map_z` at least that "
-             "high, against the number the budget expects. Thresholds in the next section.",
+             f"`far` is the paper's rate. Noise-only detections with `{statistic}` at least "
+             "that high, against the number the budget expects. Thresholds in the next "
+             "section.",
              "", "| band | paper's rate | Z at that rate | slides (h) | inverted data (h) "
              "| noise-only above: measured / expected |", "|---|---:|---:|---:|---:|---:|"]
     for r in budget:

@@ -116,7 +116,8 @@ def flux_residual_table(detections: Table) -> Table:
         return Table(names=("bandpass", "t_rise", "s_peak", "flux", "flux_true", "residual",
                             "peak_residual", "nearest_peak"))
     keep = ["source_id", "obs_id", "wafer_slot", "bandpass", "t_rise", "s_peak", "t_peak",
-            "flux", "flux_err", "flux_true", "snr_fit", "map_z", "n_dets", "dt", "offset",
+            "flux", "flux_err", "flux_true", "snr_fit", "map_z", "coherent_snr", "n_dets", "dt",
+            "offset",
             "nearest_peak"]
     out = detections[[c for c in keep if c in detections.colnames]]
     flux_true = np.asarray(out["flux_true"], float)
@@ -234,15 +235,21 @@ def fitted_noise_table(folders: dict) -> Table:
         table = Table.read(path) if path.exists() else Table()
         if len(table):
             nan = np.full(len(table), np.nan)
-            parts.append(Table({"band": np.full(len(table), group.band),
-                                "wafer_slot": np.full(len(table), group.wafer),
-                                "snr_fit": np.asarray(table["snr_fit"], float),
-                                "map_z": np.asarray(table["map_z"], float)
-                                if "map_z" in table.colnames else nan,
-                                "detected": np.asarray(table["detected"], bool)}))
+            part = Table({"band": np.full(len(table), group.band),
+                          "wafer_slot": np.full(len(table), group.wafer),
+                          "snr_fit": np.asarray(table["snr_fit"], float)})
+            for name in STATISTICS:
+                part[name] = (np.asarray(table[name], float) if name in table.colnames
+                              else nan)
+            part["detected"] = np.asarray(table["detected"], bool)
+            parts.append(part)
     return (vstack(parts) if parts else
-            Table(names=("band", "wafer_slot", "snr_fit", "map_z", "detected"),
-                  dtype=("U8", "U8", float, float, bool)))
+            Table(names=("band", "wafer_slot", "snr_fit") + STATISTICS + ("detected",),
+                  dtype=("U8", "U8", float) + (float,) * len(STATISTICS) + (bool,)))
+
+
+#: The coherent statistics a false-alarm budget can rank detections by (:mod:`.far_budget`).
+STATISTICS = ("map_z", "coherent_snr")
 
 
 def write_results(cfg, folder, flares, detections, folders, check=None) -> Path:
@@ -253,6 +260,7 @@ def write_results(cfg, folder, flares, detections, folders, check=None) -> Path:
     eff["tod_rms"].unit = u.mJy
     eff["tod_rms"].description = "median per-sample white noise of the band's detectors"
     maxima, live = background_tables(folders)
+    live["statistic"] = np.full(len(live), cfg.far_statistic() or "", "U16")
     tables = dict(flares=flares, efficiency=eff,
                   flux_residuals=flux_residual_table(detections),
                   false_positives=false_positive_table(folders),
@@ -304,16 +312,19 @@ def write_tables(folder, tables: dict, meta: dict, seed=0) -> Path:
 
 
 def far_budget_tables(tables: dict, wafer_hours: dict, seed=0) -> dict:
-    """The coherent mode at the paper's rate on its false-alarm background
-    (:mod:`.far_budget`): ``far_budget`` (the Z per band and its check), ``efficiency_far``,
-    ``thresholds_far`` and ``noise_far`` (the noise-only detections' far)."""
+    """Detection at the paper's rate on the false-alarm background (:mod:`.far_budget`):
+    ``far_budget`` (the Z per band and its check), ``efficiency_far``, ``thresholds_far`` and
+    ``noise_far`` (the noise-only detections' far), ranked by the statistic ``far_live``
+    names (``map_z`` in coherent mode, ``coherent_snr`` in paper mode)."""
     from .equal_rate import efficiency_at
     from .far_budget import budget_table, noise_far, pooled_backgrounds
 
-    backgrounds = pooled_backgrounds(tables["far_background"], tables["far_live"])
-    budget = budget_table(backgrounds, tables["fitted_noise"], wafer_hours)
+    live = tables["far_live"]
+    column = str(live["statistic"][0]) if "statistic" in live.colnames else "map_z"
+    backgrounds = pooled_backgrounds(tables["far_background"], live)
+    budget = budget_table(backgrounds, tables["fitted_noise"], wafer_hours, column)
     cut = {str(r["band"]): float(r["z_budget"]) for r in budget}
-    eff = efficiency_at(tables["flares"], tables["flux_residuals"], cut, column="map_z")
+    eff = efficiency_at(tables["flares"], tables["flux_residuals"], cut, column=column)
     return dict(far_budget=budget, efficiency_far=eff,
                 thresholds_far=threshold_table(eff, seed),
-                noise_far=noise_far(backgrounds, tables["fitted_noise"]))
+                noise_far=noise_far(backgrounds, tables["fitted_noise"], column))

@@ -5,8 +5,8 @@
     campaign.json        the config and its digest; a different config is refused
     noise/sim/<g>/       the noise-only dataset of each group (a sotodlib context), deleted
                          once the group is prepared
-    noise/groups/<g>/    each prepared group (see :mod:`so_transients.campaign.noise`), with
-                         its false-alarm background in coherent mode (:mod:`.far_budget`)
+    noise/groups/<g>/    each prepared group (see :mod:`so_transients.campaign.noise`) and,
+                         with a false-alarm budget, its background (:mod:`.far_budget`)
     units/               one pair of ECSV files per (cell, observation) work unit
     results/             the tables, Markdown and figures (:mod:`.report`, :mod:`.figures`)
 
@@ -28,7 +28,7 @@ from tqdm.auto import tqdm
 
 from ..parallel import executor, run_all
 from .config import CampaignConfig, Cell
-from .far_budget import background_done, coherent_search, search_background
+from .far_budget import background_done, search_background
 from .full_check import run_full_check
 from .noise import (campaign_groups, false_positives_done, prepare_group,
                     search_false_positives, simulate_group)
@@ -63,7 +63,7 @@ def prepare_noise(cfg, out: Path, progress=True, pool=None):
     hour in memory). With a ``pool`` the groups' simulations are submitted there first, so
     the next group is being simulated while this one is preprocessed (mostly single-threaded),
     and so is the false-positive search of a prepared group, which only reads its files, and
-    in coherent mode its false-alarm background (:mod:`.far_budget`); ``futures`` are those
+    with a false-alarm budget its background (:mod:`.far_budget`); ``futures`` are those
     searches (empty without a pool: they ran here).
     """
     standard, search = cfg.pipeline_steps()
@@ -73,6 +73,7 @@ def prepare_noise(cfg, out: Path, progress=True, pool=None):
     stamp = cfg.noise_digest()
     settings = dataclasses.asdict(cfg.significance_settings())
     background = f"{stamp} {json.dumps(settings, sort_keys=True)}"
+    budget = cfg.far_statistic() is not None
     groups = campaign_groups(cfg)
     folders = {g: out / "noise" / "groups" / g.label for g in groups}
     sims = NoiseSimulations(cfg, out, [g for g in groups if not _prepared(folders[g], stamp)],
@@ -89,7 +90,7 @@ def prepare_noise(cfg, out: Path, progress=True, pool=None):
         if not false_positives_done(folder, cfg.inverted, stamp):
             jobs.append((search_false_positives, group, str(folder), search, cfg.inverted,
                          stamp))
-        if coherent_search(search) and not background_done(folder, background):
+        if budget and not background_done(folder, background):
             jobs.append((search_background, group, str(folder), search, settings, background))
         for job, *args in jobs:
             if pool is None:

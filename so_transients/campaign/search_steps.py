@@ -8,6 +8,7 @@ astropy table with columns (and units) of the candidate schema.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import logging
 
 import numpy as np
@@ -21,11 +22,13 @@ from ..fit import FitConfig
 from ..step_config import from_yaml
 
 #: The steps a campaign runs on its windows: transient_significance needs whole scans for its
-#: time slides, so the fast path leaves it out (it reports, and cuts, nothing there).
+#: time slides, so the fast path leaves it out (it reports, and cuts, nothing there), except
+#: without slides for a paper-mode false-alarm budget (:func:`with_coherent_snr`).
 SEARCH_STEPS = tuple(s for s in candidates.STEPS if s != "transient_significance")
 #: Columns of a campaign's detection tables (besides ``obs_id``).
 DETECTION_COLUMNS = ("bandpass", "wafer_slot", "t_peak", "ra", "dec", "ra_err", "dec_err",
-                     "flux", "flux_err", "snr_fit", "n_dets", "snr_max", "map_z")
+                     "flux", "flux_err", "snr_fit", "n_dets", "snr_max", "map_z",
+                     "coherent_snr")
 
 
 def split_pipe(process_pipe):
@@ -45,6 +48,19 @@ def step_settings(search_steps, config_class):
     if entry is None:
         raise ValueError(f"the preprocess config has no {name} step")
     return from_yaml(config_class, entry.get("calc"), name)
+
+
+def with_coherent_snr(search_steps, settings) -> list:
+    """The search steps with ``transient_significance`` (``settings``: its
+    :class:`~so_transients.significance.SignificanceConfig`) before ``transient_fit``,
+    without time slides or a ``max_far`` cut: every candidate gets its ``coherent_snr`` (the
+    statistic the campaign's pooled background turns into a ``far``, :mod:`.far_budget`),
+    and ``transient_fit`` still decides ``detected``."""
+    calc = {**dataclasses.asdict(settings), "n_slides": 0, "max_far": None}
+    names = [step["name"] for step in search_steps]
+    at = names.index("transient_fit") if "transient_fit" in names else len(names)
+    return (search_steps[:at] + [{"name": "transient_significance", "calc": calc}]
+            + search_steps[at:])
 
 
 class SearchSteps:
@@ -96,7 +112,9 @@ def detections(aman, obs_id="", fitted=False) -> Table:
     table["obs_id"] = np.full(len(keep), obs_id)
     for name in DETECTION_COLUMNS + (("detected",) if fitted else ()):
         col = candidates.BY_NAME[name]
-        values = np.asarray(cands[name])[keep] if name in cands._fields else np.zeros(0)
+        # a step that did not run (transient_significance) leaves its columns NaN
+        values = (np.asarray(cands[name])[keep] if name in cands._fields
+                  else np.full(len(keep), np.nan))
         table[name] = values.astype(str) if values.dtype.kind in "USO" else values
         if col.unit is not None:
             table[name].unit = col.unit

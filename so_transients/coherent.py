@@ -93,24 +93,27 @@ def row_weights(geometry: CrossingGeometry, rows, beam_sigma, sigma_amp, live, r
 
 
 def coherent_map(snr, geometry: CrossingGeometry, rows, beam_sigma, sigma_amp, live,
-                 offsets=None, with_flux=True, finite=False):
+                 offsets=None, with_flux=True, finite=False, dtype=np.float64):
     """``(z, flux)``: Z and the flux estimate S (mJy) on rows x samples of ``snr`` (ndet,
     nsamp), with rows of cross-scan offsets ``rows``. Positions whose crossing reaches past
     either end of ``snr`` are NaN. ``offsets`` (ndet,) samples added to each detector's lag
     (a time slide, applied cyclically). ``with_flux=False``: Z only (``flux`` is None);
     ``finite``: ``snr`` is known to hold no NaN (a caller making many maps of it cleans it
-    once, :func:`finite_snr`)."""
+    once, :func:`finite_snr`); ``dtype``: of the sums (float32 for the many maps of a
+    background: 1.6x faster, Z to 1e-6)."""
     snr = np.asarray(snr) if finite else finite_snr(snr)   # NaN samples add nothing
     nsamp = snr.shape[1]
     weights, norm = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
     lags = geometry.lag_samples
     shifts = lags if offsets is None else lags + np.asarray(offsets, np.int64)
-    acc = np.zeros((len(rows), nsamp))
+    acc = np.zeros((len(rows), nsamp), dtype)
     used = np.flatnonzero(np.any(weights != 0, axis=0))
-    _shift_add(snr, np.ascontiguousarray(weights), used, shifts.astype(np.int64), acc)
+    _shift_add(snr, np.ascontiguousarray(weights, dtype), used, shifts.astype(np.int64), acc)
+    norm = norm.astype(dtype)
     with np.errstate(invalid="ignore", divide="ignore"):
-        z = acc / norm[:, None]
         flux = acc / (norm**2)[:, None] if with_flux else None
+        acc /= norm[:, None]
+    z = acc
     if offsets is None:      # positions whose crossing wraps around the ends are not real
         lo = min(max(0, -lags.min()), nsamp)
         hi = max(nsamp - max(0, lags.max()), lo)
@@ -178,24 +181,39 @@ def _weighted_rows(weights, used):
 
 
 def largest_share(snr, geometry: CrossingGeometry, rows, beam_sigma, sigma_amp, live,
-                  peak_rows, peak_samples, offsets=None):
+                  peak_rows, peak_samples, offsets=None, sign=1.0):
     """For each map position (``peak_rows``, ``peak_samples``) the largest share one
     detector has of its Z's sum: near 1 when a single detector's spike makes the peak (a
     glitch, or a bright source's own detectors moved apart by a time slide), small for a
-    source or noise spread over the many detectors of a crossing."""
+    source or noise spread over the many detectors of a crossing. ``sign=-1``: of the
+    sign-inverted ``snr``'s map."""
     weights, _ = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
-    snr = np.asarray(snr)
-    ndet, nsamp = snr.shape
-    shifts = geometry.lag_samples + (0 if offsets is None else np.asarray(offsets, int))
+    shifts = geometry.lag_samples + (0 if offsets is None else np.asarray(offsets, np.int64))
     out = np.ones(len(peak_rows))
-    for chunk in np.array_split(np.arange(len(peak_rows)), max(1, len(peak_rows) // 256)):
-        at = (np.asarray(peak_samples)[chunk, None] + shifts[None, :]) % nsamp
-        terms = weights[np.asarray(peak_rows)[chunk]] * np.nan_to_num(
-            snr[np.arange(ndet)[None, :], at])           # 0 where a detector has no weight
-        total = terms.sum(axis=1)
-        ok = total > 0
-        out[chunk[ok]] = terms.max(axis=1)[ok] / total[ok]
+    _largest_share(np.asarray(snr), np.ascontiguousarray(weights),
+                   np.asarray(shifts, np.int64), np.asarray(peak_rows, np.int64),
+                   np.asarray(peak_samples, np.int64), float(sign), out)
     return out
+
+
+@njit(cache=True, nogil=True)
+def _largest_share(snr, weights, shifts, peak_rows, peak_samples, sign, out):
+    """:func:`largest_share`'s loop: each position's terms ``w * snr`` (NaN: 0) over the
+    detectors weighted in its row; ``out`` is left at 1 where their sum is not positive."""
+    nsamp = snr.shape[1]
+    for k in range(len(peak_rows)):
+        r, t = peak_rows[k], peak_samples[k]
+        total, best = 0.0, 0.0
+        for d in range(weights.shape[1]):
+            w = weights[r, d]
+            if w == 0.0:
+                continue
+            v = snr[d, (t + shifts[d]) % nsamp]
+            term = sign * w * v if np.isfinite(v) else 0.0
+            total += term
+            best = max(best, term)
+        if total > 0:
+            out[k] = best / total
 
 
 MAX_SCALE_VALUES = 20_000
@@ -214,8 +232,7 @@ def local_maxima(z, threshold, time_window):
     neighbourhood of one row either side and ``time_window`` samples either side (NaN is
     never a maximum and does not hide one)."""
     rows, samples = np.nonzero(np.asarray(z) >= threshold)
-    keep = _is_local_max(np.ascontiguousarray(z, dtype=np.float64), rows, samples,
-                         int(time_window))
+    keep = _is_local_max(np.ascontiguousarray(z), rows, samples, int(time_window))
     return rows[keep], samples[keep]
 
 

@@ -109,7 +109,7 @@ def scan_maps(snr, geometry, beam_sigma, sigma_amp, live, first, cfg: Significan
     for _ in range(cfg.n_slides):
         offsets = time_slide_offsets(snr.shape[0], nsamp, min_shift, rng)
         slid, _ = coherent_map(snr, geometry, rows, beam_sigma, sigma_amp, live, offsets,
-                               with_flux=False, finite=True)
+                               with_flux=False, finite=True, dtype=np.float32)
         scale = measured_scale(slid)
         r, s = local_maxima(slid, cfg.background_floor * scale, window)
         # a slide moves a bright source's (or a glitch's) detector spikes apart: each makes
@@ -128,7 +128,7 @@ def inverted_maxima(z, snr, geometry, rows, beam_sigma, sigma_amp, live, scale, 
     x ``scale``; left out: those one detector makes, and a bright source's filter sidelobes
     (a data maximum ``max_opposite_ratio`` times higher within ``sidelobe_window``)."""
     r, s = local_maxima(-z, cfg.background_floor * scale, window)
-    share = largest_share(-np.asarray(snr), geometry, rows, beam_sigma, sigma_amp, live, r, s)
+    share = largest_share(snr, geometry, rows, beam_sigma, sigma_amp, live, r, s, sign=-1.0)
     half = int(round(cfg.sidelobe_window * geometry.sample_rate))
     nearby = ndimage.maximum_filter(np.nan_to_num(z, nan=-np.inf), size=(5, 2 * half + 1),
                                     mode="nearest")

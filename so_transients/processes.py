@@ -450,7 +450,7 @@ class TransientSignificance(_Preprocess):
 
       - name: transient_significance
         calc:
-          n_slides: 20                    # background live time: 20 x the data's (0: none)
+          n_slides: 100                   # background live time: 100 x the data's (0: none)
           min_slide_s: 2.0                # every detector shifted at least this far
           row_step: 0.8                   # beam sigmas between rows of positions
           background_floor: 3.0           # background maxima counted from this Z

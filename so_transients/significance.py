@@ -40,7 +40,7 @@ from .tail_model import model_count_above
 
 @dataclass
 class SignificanceConfig:
-    n_slides: int = 20               # time slides per scan: background live time / data's
+    n_slides: int = 100              # time slides per scan: background live time / data's
     #                                  (0: none; far from the sign-inverted data alone)
     min_slide_s: float = 2.0         # every detector is shifted at least this far
     row_step: float = 0.8            # beam sigmas between rows of positions

@@ -482,14 +482,19 @@ class TransientSignificance(_Preprocess):
             np.asarray(aman[SCAN_FIELD]),
             np.asarray(f.sigma_amp), ~np.asarray(f.dead, bool), np.asarray(f.beam_sigma),
             bands, rows, self.cfg, _stacking(cands))
-        if self.cfg.n_slides and not live > 0:
+        if not np.isfinite(live):
+            log.warning("%s: %s: no band with live detectors: far not computed (NaN), "
+                        "candidates pass", self.name, GroupName(aman))
+        elif self.cfg.n_slides and not live > 0:
             log.warning("%s: %s: no constant-speed scan with live detectors long enough for "
-                        "time slides: far not computed (NaN), candidates pass", self.name,
+                        "time slides: far from the sign-inverted data alone", self.name,
                         GroupName(aman))
-        elif self.cfg.max_far is not None and live * self.cfg.max_far < 1:
-            log.warning("%s: %s: %.2f h of background cannot resolve max_far = %g per hour "
-                        "(fewer than one false alarm expected in it): raise n_slides",
-                        self.name, GroupName(aman), live, self.cfg.max_far)
+        elif self.cfg.n_slides and self.cfg.max_far is not None \
+                and live * self.cfg.max_far < 0.5:
+            # a statistic above every slide maximum gets far_slides = 0.5 / live
+            log.warning("%s: %s: %.2f h of slides cannot resolve max_far = %g per hour (every "
+                        "single-crossing candidate has far >= %.3g): raise n_slides",
+                        self.name, GroupName(aman), live, self.cfg.max_far, 0.5 / live)
         candidates.add_to_aman(cands, result, CAND_AXIS)
         _replace(cands, "significance_live_hours", live)
         _replace(cands, "significance_z_scale", scale)

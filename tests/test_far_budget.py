@@ -138,3 +138,21 @@ def test_slides_cannot_be_negative():
     assert SignificanceConfig(n_slides=0).n_slides == 0
     with pytest.raises(ConfigError, match="transient_significance: n_slides"):
         SignificanceConfig(n_slides=-1)
+
+
+def test_combined_campaigns_rank_each_band_by_its_own_statistic():
+    """A coherent campaign's band (written before the ``statistic`` column: masked once
+    stacked) and a paper-mode one's, as ``campaign-combine`` stacks them."""
+    from astropy.table import vstack
+
+    from so_transients.campaign.far_budget import band_statistic, live_statistics
+
+    old = Table({"band": ["f090"], "slide_hours": [1.0]})
+    new = Table({"band": ["f150"], "slide_hours": [1.0], "statistic": ["coherent_snr"]})
+    statistics = live_statistics(vstack([old, new]))
+    assert statistics == {"f090": "map_z", "f150": "coherent_snr"}
+    rows = vstack([Table({"bandpass": ["f090", "f150"], "map_z": [7.0, np.nan]}),
+                   Table({"bandpass": ["f150"], "map_z": [np.nan], "coherent_snr": [6.0]})])
+    # a band's values come from its own column; missing (masked) values are NaN, not 0
+    assert np.array_equal(band_statistic(rows, "bandpass", statistics), [7.0, np.nan, 6.0],
+                          equal_nan=True)

@@ -180,16 +180,18 @@ class CampaignConfig:
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
     def noise_digest(self) -> str:
-        """Hash of what the noise-only observations depend on (simulation and preprocessing)."""
-        text = json.dumps([self.simulation, self.seed, self.process_pipe,
-                           self.preprocess_overrides],
-                          sort_keys=True, default=str)
+        """Hash of what the noise-only observations depend on (simulation and preprocessing;
+        and whether their search gives ``coherent_snr``, a paper-mode false-alarm budget)."""
+        parts = [self.simulation, self.seed, self.process_pipe, self.preprocess_overrides]
+        if self.far_statistic() == "coherent_snr":
+            parts.append("coherent_snr")
+        text = json.dumps(parts, sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
     def significance_settings(self):
         """``transient_significance``'s settings in the preprocess config (with the
         overrides), or its defaults where the step is not listed: the background of the
-        coherent mode's false-alarm budget (:mod:`.far_budget`)."""
+        campaign's false-alarm budget (:mod:`.far_budget`)."""
         pipe = apply_overrides(copy.deepcopy(self.process_pipe), self.preprocess_overrides)
         entry = next((s for s in pipe if s["name"] == "transient_significance"),
                      (self.preprocess_overrides or {}).get("transient_significance", {}))

@@ -119,11 +119,39 @@ def pooled_backgrounds(maxima: Table, live: Table) -> dict:
     return out
 
 
+def live_statistics(live: Table) -> dict:
+    """``{band: the statistic its campaign ranked detections by}`` from ``far_live`` (its
+    ``statistic`` column; ``map_z`` where none is named: coherent-mode results written before
+    paper-mode budgets). Combined campaigns may differ band by band."""
+    names = (np.ma.filled(np.ma.asarray(live["statistic"]), "") if "statistic" in live.colnames
+             else np.full(len(live), ""))
+    out = {}
+    for band, name in zip(np.asarray(live["band"]).astype(str), names):
+        out.setdefault(band, str(name) or "map_z")
+    return out
+
+
+def band_statistic(table: Table, band_key: str, statistics: dict) -> np.ndarray:
+    """Each row's value of its band's statistic (``statistics``: :func:`live_statistics`;
+    ``band_key``: the band column), NaN where the column is missing or masked."""
+    out = np.full(len(table), np.nan)
+    if not len(table):
+        return out
+    bands = np.asarray(table[band_key]).astype(str)
+    for band, name in statistics.items():
+        sel = bands == band
+        if name in table.colnames and sel.any():
+            out[sel] = np.ma.filled(np.ma.asarray(table[name][sel], float), np.nan)
+    return out
+
+
 def budget_table(backgrounds: dict, fitted_noise: Table, wafer_hours: dict,
-                 column="map_z") -> Table:
+                 statistics: dict | None = None) -> Table:
     """Per band: the Z at the paper's rate, the background behind it, and the noise-only
-    detections whose statistic ``column`` is at least that high (measured rate per
-    wafer-band-hour beside the target)."""
+    detections whose statistic (``statistics``: {band: column}, default ``map_z``) is at
+    least that high (measured rate per wafer-band-hour beside the target)."""
+    statistics = statistics or {band: "map_z" for band in backgrounds}
+    z_noise = band_statistic(fitted_noise, "band", statistics)
     rows = []
     for band, b in backgrounds.items():
         target = PAPER_RATE_PER_WBH.get(band, np.nan)
@@ -133,12 +161,11 @@ def budget_table(backgrounds: dict, fitted_noise: Table, wafer_hours: dict,
                         "paper's rate of %.3f per wafer-band-hour: no thresholds at a "
                         "false-alarm budget (more noise-only hours or n_slides)", band,
                         b.slide_hours, b.data_hours, target)
-        mine = fitted_noise[fitted_noise["band"] == band]
-        found = (np.asarray(mine["detected"], bool) & (np.asarray(mine[column], float) >= z)
-                 if len(mine) else np.zeros(0, bool))
+        mine = np.asarray(fitted_noise["band"]).astype(str) == band
+        found = np.asarray(fitted_noise["detected"], bool)[mine] & (z_noise[mine] >= z)
         hours = wafer_hours.get(band, np.nan)
         n = int(found.sum())
-        rows.append((band, column, target, z, b.slide_hours, b.data_hours, len(b.slides),
+        rows.append((band, statistics[band], target, z, b.slide_hours, b.data_hours, len(b.slides),
                      len(b.inverted), hours, n, n / hours, np.sqrt(max(n, 1)) / hours,
                      target * hours))
     table = Table(rows=rows or None,
@@ -154,18 +181,22 @@ def budget_table(backgrounds: dict, fitted_noise: Table, wafer_hours: dict,
     return table
 
 
-def noise_far(backgrounds: dict, fitted_noise: Table, column="map_z") -> Table:
-    """The noise-only detections with the ``far`` their statistic ``column`` has
-    (calibration: the number with ``far <= x`` should be ``x`` times the wafer-band-hours)."""
+def noise_far(backgrounds: dict, fitted_noise: Table, statistics: dict | None = None
+              ) -> Table:
+    """The noise-only detections with their statistic ``z`` (``statistics`` as for
+    :func:`budget_table`) and the ``far`` it has (calibration: the number with ``far <= x``
+    should be ``x`` times the wafer-band-hours)."""
+    statistics = statistics or {band: "map_z" for band in backgrounds}
     keep = (np.asarray(fitted_noise["detected"], bool)
             & np.isin(np.asarray(fitted_noise["band"]).astype(str), list(backgrounds))
             if len(fitted_noise) else np.zeros(0, bool))
-    out = fitted_noise[keep]["band", column] if keep.any() else Table(
-        names=("band", column), dtype=("U8", float))
+    bands = np.asarray(fitted_noise["band"]).astype(str)[keep] if keep.any() else []
+    out = Table({"band": np.asarray(bands, "U8"),
+                 "z": band_statistic(fitted_noise, "band", statistics)[keep]})
     far = np.full(len(out), np.nan)
     for band, b in backgrounds.items():
         sel = np.asarray(out["band"]).astype(str) == band
-        far[sel] = b.far(np.asarray(out[column][sel], float))["far"]
+        far[sel] = b.far(np.asarray(out["z"][sel], float))["far"]
     out["far"] = far * (1 / u.hour)
     return out
 

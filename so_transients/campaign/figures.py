@@ -5,7 +5,7 @@
 * ``flux_residuals.png``: fractional (fitted - injected) / injected flux vs S_p per band
   (injected flux at the detection's time), medians per t_r;
 * ``pointing.png``: distribution of fitted-position offsets per band, FWHM and sigma marked;
-* ``far_calibration.png`` (coherent mode): the noise-only detections with ``far <= x``
+* ``far_calibration.png`` (with a false-alarm budget): the noise-only detections with ``far <= x``
   against ``x`` times the live time.
 """
 from __future__ import annotations

@@ -96,7 +96,7 @@ def false_section(false, equal):
 
 
 def far_section(budget):
-    """The coherent mode at a false-alarm budget (:mod:`.far_budget`)."""
+    """Detection at a false-alarm budget (:mod:`.far_budget`)."""
     if budget is None or not len(budget):
         return []
     statistic = str(budget["statistic"][0])

@@ -259,8 +259,10 @@ def write_results(cfg, folder, flares, detections, folders, check=None) -> Path:
     eff["tod_rms"] = [rms.get(b, np.nan) for b in eff["band"]]
     eff["tod_rms"].unit = u.mJy
     eff["tod_rms"].description = "median per-sample white noise of the band's detectors"
-    maxima, live = background_tables(folders)
-    live["statistic"] = np.full(len(live), cfg.far_statistic() or "", "U16")
+    statistic = cfg.far_statistic()
+    # without a budget, backgrounds an earlier run of the config left are not read
+    maxima, live = background_tables(folders if statistic else {})
+    live["statistic"] = np.full(len(live), statistic or "", "U16")
     tables = dict(flares=flares, efficiency=eff,
                   flux_residuals=flux_residual_table(detections),
                   false_positives=false_positive_table(folders),
@@ -274,7 +276,7 @@ def write_results(cfg, folder, flares, detections, folders, check=None) -> Path:
 INPUT_TABLES = ("flares", "efficiency", "flux_residuals", "false_positives", "fitted_noise",
                 "full_check", "far_background", "far_live")
 #: Input tables a campaign may not have: the full-pipeline check, and the false-alarm
-#: background (coherent mode only).
+#: background (with a false-alarm budget only).
 OPTIONAL_TABLES = ("full_check", "far_background", "far_live")
 
 
@@ -314,17 +316,19 @@ def write_tables(folder, tables: dict, meta: dict, seed=0) -> Path:
 def far_budget_tables(tables: dict, wafer_hours: dict, seed=0) -> dict:
     """Detection at the paper's rate on the false-alarm background (:mod:`.far_budget`):
     ``far_budget`` (the Z per band and its check), ``efficiency_far``, ``thresholds_far`` and
-    ``noise_far`` (the noise-only detections' far), ranked by the statistic ``far_live``
-    names (``map_z`` in coherent mode, ``coherent_snr`` in paper mode)."""
+    ``noise_far`` (the noise-only detections' far), each band ranked by the statistic
+    ``far_live`` names for it (``map_z`` in coherent mode, ``coherent_snr`` in paper mode)."""
     from .equal_rate import efficiency_at
-    from .far_budget import budget_table, noise_far, pooled_backgrounds
+    from .far_budget import (band_statistic, budget_table, live_statistics, noise_far,
+                             pooled_backgrounds)
 
-    live = tables["far_live"]
-    column = str(live["statistic"][0]) if "statistic" in live.colnames else "map_z"
-    backgrounds = pooled_backgrounds(tables["far_background"], live)
-    budget = budget_table(backgrounds, tables["fitted_noise"], wafer_hours, column)
+    statistics = live_statistics(tables["far_live"])
+    backgrounds = pooled_backgrounds(tables["far_background"], tables["far_live"])
+    budget = budget_table(backgrounds, tables["fitted_noise"], wafer_hours, statistics)
     cut = {str(r["band"]): float(r["z_budget"]) for r in budget}
-    eff = efficiency_at(tables["flares"], tables["flux_residuals"], cut, column=column)
+    matched = tables["flux_residuals"].copy(copy_data=False)
+    matched["budget_z"] = band_statistic(matched, "bandpass", statistics)
+    eff = efficiency_at(tables["flares"], matched, cut, column="budget_z")
     return dict(far_budget=budget, efficiency_far=eff,
                 thresholds_far=threshold_table(eff, seed),
-                noise_far=noise_far(backgrounds, tables["fitted_noise"], column))
+                noise_far=noise_far(backgrounds, tables["fitted_noise"], statistics))

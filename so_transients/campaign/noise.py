@@ -23,7 +23,7 @@ need is then kept on disk, under ``<output>/noise/groups/<group>/``:
   (the site pipeline on -TOD: every standard step and the filter are odd in the data, so its
   S/N is exactly minus this one). :func:`search_false_positives` makes them from the files
   above, so a campaign runs it in a worker while the next group is being prepared;
-* ``background.npz`` (coherent mode): the false-alarm background of the whole group
+* ``background.npz`` (with a false-alarm budget): the false-alarm background of the group
   (:mod:`.far_budget`), made in a worker the same way.
 """
 from __future__ import annotations

@@ -192,8 +192,7 @@ class CampaignConfig:
         """``transient_significance``'s settings in the preprocess config (with the
         overrides), or its defaults where the step is not listed: the background of the
         campaign's false-alarm budget (:mod:`.far_budget`)."""
-        pipe = apply_overrides(copy.deepcopy(self.process_pipe), self.preprocess_overrides)
-        entry = next((s for s in pipe if s["name"] == "transient_significance"),
+        entry = next((s for s in self._pipe() if s["name"] == "transient_significance"),
                      (self.preprocess_overrides or {}).get("transient_significance", {}))
         return from_yaml(SignificanceConfig, entry.get("calc"), "transient_significance")
 
@@ -202,8 +201,7 @@ class CampaignConfig:
         with the campaign's overrides applied (fresh copies: callers may change them). With a
         false-alarm budget in paper mode the search steps also give every candidate its
         ``coherent_snr`` (:func:`.search_steps.with_coherent_snr`)."""
-        pipe = apply_overrides(copy.deepcopy(self.process_pipe), self.preprocess_overrides)
-        standard, search = split_pipe(pipe)
+        standard, search = split_pipe(self._pipe())
         if self.far_statistic() == "coherent_snr":
             search = with_coherent_snr(search, self.significance_settings())
         return standard, search
@@ -212,11 +210,14 @@ class CampaignConfig:
         """What the false-alarm budget (:mod:`.far_budget`) ranks detections by: ``map_z``
         in coherent mode, ``coherent_snr`` in paper mode, None without a budget
         (``far_budget``; by default a budget in coherent mode only)."""
-        pipe = apply_overrides(copy.deepcopy(self.process_pipe), self.preprocess_overrides)
-        coherent = step_settings(split_pipe(pipe)[1], FindConfig).mode == "coherent"
+        coherent = step_settings(split_pipe(self._pipe())[1], FindConfig).mode == "coherent"
         if not (coherent if self.far_budget is None else self.far_budget):
             return None
         return "map_z" if coherent else "coherent_snr"
+
+    def _pipe(self) -> list:
+        """A fresh copy of the preprocess config's steps with the campaign's overrides."""
+        return apply_overrides(copy.deepcopy(self.process_pipe), self.preprocess_overrides)
 
 
 SECTIONS = {"matching": Matching, "injection": Injection, "full_check": FullCheck}

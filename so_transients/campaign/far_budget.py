@@ -165,9 +165,9 @@ def budget_table(backgrounds: dict, fitted_noise: Table, wafer_hours: dict,
         found = np.asarray(fitted_noise["detected"], bool)[mine] & (z_noise[mine] >= z)
         hours = wafer_hours.get(band, np.nan)
         n = int(found.sum())
-        rows.append((band, statistics[band], target, z, b.slide_hours, b.data_hours, len(b.slides),
-                     len(b.inverted), hours, n, n / hours, np.sqrt(max(n, 1)) / hours,
-                     target * hours))
+        rows.append((band, statistics[band], target, z, b.slide_hours, b.data_hours,
+                     len(b.slides), len(b.inverted), hours, n, n / hours,
+                     np.sqrt(max(n, 1)) / hours, target * hours))
     table = Table(rows=rows or None,
                   names=("band", "statistic", "target_per_wbh", "z_budget", "slide_hours",
                          "data_hours", "n_slide_maxima", "n_inverted_maxima", "wafer_hours",

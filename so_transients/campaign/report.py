@@ -117,8 +117,7 @@ def flux_residual_table(detections: Table) -> Table:
                             "peak_residual", "nearest_peak"))
     keep = ["source_id", "obs_id", "wafer_slot", "bandpass", "t_rise", "s_peak", "t_peak",
             "flux", "flux_err", "flux_true", "snr_fit", "map_z", "coherent_snr", "n_dets", "dt",
-            "offset",
-            "nearest_peak"]
+            "offset", "nearest_peak"]
     out = detections[[c for c in keep if c in detections.colnames]]
     flux_true = np.asarray(out["flux_true"], float)
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -141,7 +141,7 @@ def main(argv=None):
         aman = filtered_group(args.minutes, tmp, args.seed)
     print(f"simulated and filtered {aman.dets.count} x {aman.samps.count} in "
           f"{time.perf_counter() - t0:.0f} s", flush=True)
-    cfg = SignificanceConfig(n_slides=args.slides, background_floor=2.0)
+    cfg = SignificanceConfig(n_slides=args.slides, background_floor=2.0, slide_floor=2.0)
     t1 = time.perf_counter()
     maps, beam, snrs, sigmas = maps_of(aman, cfg)
     elapsed = time.perf_counter() - t1

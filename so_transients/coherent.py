@@ -151,12 +151,12 @@ def _shift_add(snr, weights, used, shifts, acc):
             for r in range(first[k], last[k] + 1):
                 w = weights[r, d]
                 if w != 0.0:
-                    _add_slice(acc[r], snr[d], w, t0, min(t1, wrap), s)
-                    _add_slice(acc[r], snr[d], w, wrap, t1, s - nsamp)
+                    add_slice(acc[r], snr[d], w, t0, min(t1, wrap), s)
+                    add_slice(acc[r], snr[d], w, wrap, t1, s - nsamp)
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _add_slice(row, src, w, lo, hi, shift):
+def add_slice(row, src, w, lo, hi, shift):
     """``row[lo:hi] += w * src[lo + shift:hi + shift]`` as a plain loop over two slices
     (which the compiler vectorizes)."""
     if hi <= lo:
@@ -185,53 +185,79 @@ def largest_share(snr, geometry: CrossingGeometry, rows, beam_sigma, sigma_amp, 
     """For each map position (``peak_rows``, ``peak_samples``) the largest share one
     detector has of its Z's sum: near 1 when a single detector's spike makes the peak (a
     glitch, or a bright source's own detectors moved apart by a time slide), small for a
-    source or noise spread over the many detectors of a crossing. ``sign=-1``: of the
-    sign-inverted ``snr``'s map."""
+    source or noise spread over the many detectors of a crossing (1 where the sum is not
+    positive). ``sign=-1``: of the sign-inverted ``snr``'s map."""
     weights, _ = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
     shifts = geometry.lag_samples + (0 if offsets is None else np.asarray(offsets, np.int64))
-    out = np.ones(len(peak_rows))
-    _largest_share(np.asarray(snr), np.ascontiguousarray(weights),
-                   np.asarray(shifts, np.int64), np.asarray(peak_rows, np.int64),
-                   np.asarray(peak_samples, np.int64), float(sign), out)
-    return out
+    total, best = point_sums(snr, weights, *row_members(weights), shifts, peak_rows,
+                             peak_samples, sign)
+    return share_of(total, best)
+
+
+def share_of(total, best):
+    """The largest term's share ``best / total`` of each position's sum (1 where the sum is
+    not positive)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(total > 0, best / total, 1.0)
+
+
+def row_members(weights):
+    """``(indptr, members)``: the detectors with a weight in row ``r`` are
+    ``members[indptr[r]:indptr[r + 1]]`` (ascending)."""
+    r, d = np.nonzero(weights)
+    return (np.searchsorted(r, np.arange(weights.shape[0] + 1)).astype(np.int64),
+            d.astype(np.int64))
+
+
+def point_sums(snr, weights, indptr, members, shifts, rows, samples, sign=1.0):
+    """``(total, best)`` at each map position (``rows``, ``samples``): the sum of its terms
+    ``sign * weights[r, d] * snr[d, (t + shifts[d]) % nsamp]`` (NaN samples: 0), its
+    unnormalized Z, and the largest term (at least 0); ``indptr``, ``members``:
+    :func:`row_members` of ``weights``."""
+    n = len(rows)
+    total, best = np.zeros(n), np.zeros(n)
+    _point_sums(np.asarray(snr), np.ascontiguousarray(weights), indptr, members,
+                np.asarray(shifts, np.int64), np.asarray(rows, np.int64),
+                np.asarray(samples, np.int64), float(sign), total, best)
+    return total, best
 
 
 @njit(cache=True, nogil=True)
-def _largest_share(snr, weights, shifts, peak_rows, peak_samples, sign, out):
-    """:func:`largest_share`'s loop: each position's terms ``w * snr`` (NaN: 0) over the
-    detectors weighted in its row; ``out`` is left at 1 where their sum is not positive."""
+def _point_sums(snr, weights, indptr, members, shifts, rows, samples, sign, total, best):
     nsamp = snr.shape[1]
-    for k in range(len(peak_rows)):
-        r, t = peak_rows[k], peak_samples[k]
-        total, best = 0.0, 0.0
-        for d in range(weights.shape[1]):
-            w = weights[r, d]
-            if w == 0.0:
-                continue
+    for k in range(len(rows)):
+        r, t = rows[k], samples[k]
+        tot, top = 0.0, 0.0
+        for i in range(indptr[r], indptr[r + 1]):
+            d = members[i]
             v = snr[d, (t + shifts[d]) % nsamp]
-            term = sign * w * v if np.isfinite(v) else 0.0
-            total += term
-            best = max(best, term)
-        if total > 0:
-            out[k] = best / total
+            if np.isfinite(v):
+                term = sign * weights[r, d] * v
+                tot += term
+                top = max(top, term)
+        total[k] = tot
+        best[k] = top
 
 
 MAX_SCALE_VALUES = 20_000
 
 
-def measured_scale(z) -> float:
-    """The robust standard deviation of a map's finite values (1 for independent noise)."""
+def measured_scale(z, max_values=MAX_SCALE_VALUES) -> float:
+    """The robust standard deviation of a map's finite values (1 for independent noise),
+    from at most about ``max_values`` of them, evenly spread."""
     values = np.asarray(z)[np.isfinite(z)]
     # 20,000 values give it to about 1 % (robust std); a scan's map has 10^5 or more
-    values = values[::max(1, len(values) // MAX_SCALE_VALUES)]
+    values = values[::max(1, len(values) // max_values)]
     return float(mad_std(values)) if len(values) > 10 else 1.0
 
 
-def local_maxima(z, threshold, time_window):
+def local_maxima(z, threshold, time_window, where=None):
     """``(row, sample)`` of the local maxima of ``z`` at least ``threshold``, in a
     neighbourhood of one row either side and ``time_window`` samples either side (NaN is
-    never a maximum and does not hide one)."""
-    rows, samples = np.nonzero(np.asarray(z) >= threshold)
+    never a maximum and does not hide one); ``where``: only among these positions (bool,
+    the shape of ``z``)."""
+    above = np.asarray(z) >= threshold
+    rows, samples = np.nonzero(above if where is None else above & where)
     keep = _is_local_max(np.ascontiguousarray(z), rows, samples, int(time_window))
     return rows[keep], samples[keep]
 

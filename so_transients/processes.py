@@ -454,6 +454,7 @@ class TransientSignificance(_Preprocess):
           min_slide_s: 2.0                # every detector shifted at least this far
           row_step: 0.8                   # beam sigmas between rows of positions
           background_floor: 3.0           # background maxima counted from this Z
+          slide_floor: 4.5                # slides' maxima from this Z (below: inverted data)
           peak_window: 2.0                # crossing times searched around a candidate
           max_single_share: 0.5           # background maxima one detector makes: left out
           max_far: null                   # per wafer-band-hour; null: report only

@@ -9,13 +9,15 @@ detector's stream shifted cyclically within the scan by its own random offset, a
 The slides' local maxima are the background (those one detector makes alone, more than
 ``max_single_share`` of their sum, are left out: a slide scatters a bright source's own
 spikes, and a glitch's, into such maxima); their live time is ``n_slides`` times the time
-searched. Each map is normalized by its own robust standard deviation: residual atmosphere
-correlates neighbouring detectors, which widens the data's Z (measured 1.19 on 30 minutes of
-simulated f090) but not the slides', whose shifts break the correlation. Even in units of
-their own spread the data's tail is heavier: ``benchmarks/far_calibration.py`` finds
-``far`` low by a factor of 1.3-2.6 at Z = 3.5-5, so read it as a lower bound. A candidate's
-``far`` is the rate, per hour of this wafer-band, of background maxima at least as large as
-its Z.
+searched. A slide's maxima are counted from ``slide_floor`` (below it, rates are high enough
+for the sign-inverted data's own live time to resolve them) and found coarse to fine
+(:mod:`so_transients.slide_maxima`) without summing the whole map. Each map is normalized
+by its own robust standard deviation: residual atmosphere correlates neighbouring detectors,
+which widens the data's Z (measured 1.19 on 30 minutes of simulated f090) but not the
+slides', whose shifts break the correlation. Even in units of their own spread the data's
+tail is heavier: ``benchmarks/far_calibration.py`` finds ``far`` low by a factor of 1.3-2.6
+at Z = 3.5-5, so read it as a lower bound. A candidate's ``far`` is the rate, per hour of
+this wafer-band, of background maxima at least as large as its Z.
 
 Only the cheap statistic is repeated: the slides reuse the filtered S/N, never the filter.
 """
@@ -34,6 +36,7 @@ from .coherent import (CrossingGeometry, coherent_map, false_alarm_rate, finite_
 from .scan_geometry import drift_velocity
 from .scan_geometry import sample_rate as rate_of   # (``sample_rate`` names the Hz below)
 from .step_config import ConfigError, positive
+from .slide_maxima import SlideSearch
 from .sweep_stack import ScanMap, inverted_stacks, map_cell, stack_at
 from .tail_model import model_count_above
 
@@ -45,6 +48,8 @@ class SignificanceConfig:
     min_slide_s: float = 2.0         # every detector is shifted at least this far
     row_step: float = 0.8            # beam sigmas between rows of positions
     background_floor: float = 3.0    # background maxima counted from this Z
+    slide_floor: float = 4.5         # slides' maxima counted from this Z (below it, far
+    #                                  rests on the sign-inverted data, which resolves it)
     peak_window: float = 2.0         # beam-crossing times searched around a candidate
     max_single_share: float = 0.5    # background maxima one detector makes are left out
     max_far: float | None = None     # per wafer-band-hour; None: far is reported, not cut
@@ -58,6 +63,7 @@ class SignificanceConfig:
             raise ConfigError(f"transient_significance: n_slides must be 0 or more, got "
                               f"{self.n_slides}")
         positive("transient_significance", min_slide_s=self.min_slide_s, row_step=self.row_step,
+                 background_floor=self.background_floor, slide_floor=self.slide_floor,
                  peak_window=self.peak_window, max_far=self.max_far, tail_from=self.tail_from,
                  sidelobe_window=self.sidelobe_window,
                  max_opposite_ratio=self.max_opposite_ratio)
@@ -106,17 +112,15 @@ def scan_maps(snr, geometry, beam_sigma, sigma_amp, live, first, cfg: Significan
     min_shift = int(cfg.min_slide_s * geometry.sample_rate)
     if nsamp <= 2 * min_shift + 1:
         return out
+    search = SlideSearch(snr, geometry, rows, beam_sigma, sigma_amp, live, window)
+    floor = max(cfg.background_floor, cfg.slide_floor)
     for _ in range(cfg.n_slides):
         offsets = time_slide_offsets(snr.shape[0], nsamp, min_shift, rng)
-        slid, _ = coherent_map(snr, geometry, rows, beam_sigma, sigma_amp, live, offsets,
-                               with_flux=False, finite=True, dtype=np.float32)
-        scale = measured_scale(slid)
-        r, s = local_maxima(slid, cfg.background_floor * scale, window)
+        r, s, peak, scale = search.maxima(offsets, floor)
         # a slide moves a bright source's (or a glitch's) detector spikes apart: each makes
         # maxima of its own that no multi-detector candidate resembles; they are left out
-        share = largest_share(snr, geometry, rows, beam_sigma, sigma_amp, live, r, s, offsets)
-        keep = share <= cfg.max_single_share
-        out.background.extend(slid[r[keep], s[keep]])
+        keep = search.largest_share(r, s, offsets) <= cfg.max_single_share
+        out.background.extend(peak[keep])
         out.slide_scale.append(scale)
         out.live_s += nsamp / geometry.sample_rate
     return out
@@ -181,6 +185,10 @@ class Background:
     scale: float = 1.0
     tail_from: float | None = 3.5    # the inverted maxima's tail model starts here
     floor: float = 3.0               # maxima were counted from this Z
+    slide_floor: float | None = None  # the slides' from this one (None: ``floor``)
+
+    def __post_init__(self):
+        self.slide_floor = self.floor if self.slide_floor is None else float(self.slide_floor)
 
     @classmethod
     def from_scans(cls, scans, cfg: SignificanceConfig):
@@ -195,17 +203,20 @@ class Background:
         # each map's maxima were found from the floor in its own units: in the common
         # units, those of a narrower map can fall below it, and are left out
         floor = cfg.background_floor
+        slide_floor = max(floor, cfg.slide_floor)
         slides, inverted = slides / slide_scale, inverted / scale
-        return cls(slides[slides >= floor], sum(m.live_s for m in scans) / 3600.0,
+        return cls(slides[slides >= slide_floor], sum(m.live_s for m in scans) / 3600.0,
                    inverted[inverted >= floor], sum(m.data_live_s for m in scans) / 3600.0,
-                   scale, cfg.tail_from, floor)
+                   scale, cfg.tail_from, floor, slide_floor)
 
     def far(self, z) -> dict:
         """``far``, ``far_slides`` and ``far_inverted`` (per hour of the wafer-band) of the
-        statistics ``z`` (NaN where ``z`` is NaN); ``far`` is the higher of the two."""
+        statistics ``z`` (NaN where ``z`` is NaN; ``far_slides`` NaN below the slides' floor,
+        where they were not counted); ``far`` is the higher of the two."""
         z = np.atleast_1d(np.asarray(z, float))
         slides = (false_alarm_rate(z, self.slides, self.slide_hours)
                   if self.slide_hours > 0 else np.full(z.shape, np.nan))
+        slides = np.where(z >= self.slide_floor, slides, np.nan)
         inverted = inverted_rate(z, self.inverted, self.data_hours, self.tail_from)
         finite = np.isfinite(z)
         slides, inverted = np.where(finite, slides, np.nan), np.where(finite, inverted, np.nan)

@@ -42,7 +42,7 @@ from .search_steps import step_settings
 
 log = logging.getLogger(__name__)
 LIVE_COLUMNS = ("band", "obs_id", "wafer_slot", "slide_hours", "data_hours", "scale",
-                "tail_from", "floor")
+                "tail_from", "floor", "slide_floor")
 
 
 def group_background(state, search_steps, cfg: SignificanceConfig) -> Background:
@@ -67,7 +67,7 @@ def save_background(background: Background, path, stamp):
              live=json.dumps(dict(slide_hours=background.slide_hours,
                                   data_hours=background.data_hours, scale=background.scale,
                                   tail_from=background.tail_from, floor=background.floor,
-                                  stamp=stamp)))
+                                  slide_floor=background.slide_floor, stamp=stamp)))
 
 
 def load_background(path) -> tuple:
@@ -95,10 +95,11 @@ def background_tables(folders: dict):
         for kind, z in (("slides", b.slides), ("inverted", b.inverted)):
             maxima += [(group.band, kind, float(v)) for v in z]
         live.append((group.band, group.obs_id, group.wafer, b.slide_hours, b.data_hours,
-                     b.scale, np.nan if b.tail_from is None else b.tail_from, b.floor))
+                     b.scale, np.nan if b.tail_from is None else b.tail_from, b.floor,
+                     b.slide_floor))
     maxima = Table(rows=maxima or None, names=("band", "kind", "z"), dtype=("U8", "U8", float))
     live = Table(rows=live or None, names=LIVE_COLUMNS,
-                 dtype=("U8", "U64", "U8", float, float, float, float, float))
+                 dtype=("U8", "U64", "U8", float, float, float, float, float, float))
     live["slide_hours"].unit = live["data_hours"].unit = u.hour
     return maxima, live
 
@@ -115,7 +116,8 @@ def pooled_backgrounds(maxima: Table, live: Table) -> dict:
             float(np.sum(rows["slide_hours"])),
             np.asarray(mine["z"][mine["kind"] == "inverted"], float),
             float(np.sum(rows["data_hours"])), np.nan,
-            None if not np.isfinite(tail) else tail, float(rows["floor"][0]))
+            None if not np.isfinite(tail) else tail, float(rows["floor"][0]),
+            float(np.max(rows["slide_floor"])))
     return out
 
 

@@ -1,0 +1,114 @@
+"""Benchmark: the coarse-to-fine search of time slides' maxima against the full maps.
+
+    python benchmarks/slide_search.py                        # 20 minutes of w16 at f090
+    python benchmarks/slide_search.py --context data/bench_sim/context.yaml --slides 10
+    python benchmarks/slide_search.py --floor 3.5            # more maxima to compare
+
+Loads (or simulates, as ``bench_chain.py`` does: atmosphere, CMB, flares, glitches) one
+observation, runs the shipped standard steps and ``transient_filter``, then for every scan
+and ``--slides`` time slides finds the local maxima at least ``--floor`` x the map's spread
+twice: by ``transient_significance``'s coarse-to-fine search
+(:class:`so_transients.slide_maxima.SlideSearch`) and on the full map
+(:func:`so_transients.coherent.coherent_map`). Prints the maxima the search missed or added
+(both should be 0), the time per slide of each, and the slides' maxima per hour of the
+wafer-band at the floor.
+"""
+import argparse
+import logging
+import os
+import sys
+import tempfile
+import time
+
+os.environ.setdefault("OMP_WAIT_POLICY", "passive")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+from sotodlib import core  # noqa: E402
+from sotodlib.preprocess import Pipeline  # noqa: E402
+
+import so_transients  # noqa: E402,F401  registers the steps and the loader
+from so_transients import pointing  # noqa: E402
+from so_transients.coherent import (coherent_map, finite_snr, local_maxima,  # noqa: E402
+                                    row_offsets, time_slide_offsets)
+from so_transients.find import FindConfig, group_scans  # noqa: E402
+from so_transients.scan_geometry import sample_rate  # noqa: E402
+from so_transients.significance import SignificanceConfig, scan_geometry  # noqa: E402
+from so_transients.slide_maxima import SlideSearch  # noqa: E402
+
+from bench_chain import simulate_tod, standard_steps  # noqa: E402
+
+
+def filtered(args):
+    if args.context:
+        ctx = core.Context(args.context)
+        aman = ctx.get_obs(ctx.obsdb.query()["obs_id"][0])
+    else:
+        with tempfile.TemporaryDirectory() as tmp:
+            aman = simulate_tod(1 / 3, tmp)
+    steps = standard_steps() + [{"name": "transient_filter", "calc": True, "save": True}]
+    Pipeline(steps, logger=logging.getLogger("slide_search")).run(aman)
+    return aman
+
+
+def scans_of(aman):
+    """Per scan: ``(snr, geometry)`` of the live detectors, and their sigma_amp and beam."""
+    t = np.asarray(aman.timestamps)
+    scan, _ = group_scans(t, aman.boresight.az, aman.boresight.el, FindConfig())
+    f = aman.transient_filter
+    dets = np.flatnonzero(~np.asarray(f.dead, bool))
+    q = pointing.boresight_q(aman)
+    xi, eta = np.asarray(aman.focal_plane.xi)[dets], np.asarray(aman.focal_plane.eta)[dets]
+    out = []
+    for s in np.unique(scan[scan >= 0]):
+        samples = np.flatnonzero(scan == s)
+        snr = finite_snr(np.asarray(aman.transient_snr[dets, samples[0]:samples[-1] + 1]))
+        out.append((snr, scan_geometry(t, q, xi, eta, samples, sample_rate(t))))
+    return out, np.asarray(f.sigma_amp)[dets], float(np.median(np.asarray(f.beam_sigma)[dets]))
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--context", metavar="YAML",
+                        help="the first observation of this dataset instead of a simulation")
+    parser.add_argument("--slides", type=int, default=5)
+    parser.add_argument("--floor", type=float, default=SignificanceConfig().slide_floor)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    scans, sigma, beam = scans_of(filtered(args))
+    cfg, rng = SignificanceConfig(), np.random.default_rng(args.seed)
+    live = np.ones(len(sigma), bool)
+    found = missed = added = 0
+    t_full = t_search = hours = 0.0
+    for snr, g in scans:
+        rows = row_offsets(g, beam, cfg.row_step)
+        window = g.crossing_samples(beam)
+        search = SlideSearch(snr, g, rows, beam, sigma, live, window)
+        search.maxima(time_slide_offsets(len(sigma), snr.shape[1], 400, rng), args.floor)
+        for _ in range(args.slides):
+            offsets = time_slide_offsets(len(sigma), snr.shape[1],
+                                         int(cfg.min_slide_s * g.sample_rate), rng)
+            start = time.perf_counter()
+            r, s, _, scale = search.maxima(offsets, args.floor)
+            middle = time.perf_counter()
+            z, _ = coherent_map(snr, g, rows, beam, sigma, live, offsets, with_flux=False,
+                                finite=True, dtype=np.float32)
+            fr, fs = local_maxima(z, args.floor * scale, window)
+            t_search += middle - start
+            t_full += time.perf_counter() - middle
+            mine, full = set(zip(r.tolist(), s.tolist())), set(zip(fr.tolist(), fs.tolist()))
+            found, missed, added = found + len(full), missed + len(full - mine), \
+                added + len(mine - full)
+            hours += snr.shape[1] / g.sample_rate / 3600.0
+    n = len(scans) * args.slides
+    print(f"{len(scans)} scans x {args.slides} slides, {len(sigma)} live detectors, "
+          f"floor {args.floor}")
+    print(f"maxima of the full maps: {found} ({found / hours:.0f} per wafer-band-hour); "
+          f"missed by the search: {missed}; added: {added}")
+    print(f"per slide of a scan: full map {1e3 * t_full / n:.1f} ms, search "
+          f"{1e3 * t_search / n:.1f} ms ({t_full / t_search:.1f}x faster)")
+    return 0 if missed == added == 0 else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,232 @@
+"""The high local maxima of a time slide's map, found coarse to fine.
+
+A time slide's map is the background of ``far`` only where it is high: its local maxima at
+least the slide floor. :class:`SlideSearch` finds them without summing the whole map. It
+first sums a coarse map, every other row and every ``step``-th sample (``step``: one beam
+crossing time), whose values are the full map's own at those positions, for about
+``1 / (2 step)`` of the full sum's cost. Around each coarse position at least
+:data:`REFINE` x the threshold it then sums the full map, one row and ``step`` samples
+either side (the core) and, for the local-maximum test, the neighbourhood of the core; the
+maxima are those of the core.
+
+A maximum at least the threshold is missed only when every coarse position within one row
+and ``step`` samples of it is below ``REFINE`` x the threshold. Z's response to a source and
+the filtered noise's peaks alike are about a beam wide across and a beam crossing time
+along (times sqrt(2)): the nearest coarse position, at most one row (0.8 beam sigma) and
+half a crossing time away, keeps 80-85 % of a peak, and :data:`REFINE` = 0.7 leaves room
+for the noise's own irregularity. ``tests/test_slide_maxima.py`` checks the maxima against
+the full map's on filtered noise, and ``benchmarks/slide_search.py`` on a simulated
+observation. Where much of the map would need refining (a threshold near the
+noise), the full map is summed instead.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from .coherent import (add_slice, coherent_map, local_maxima, measured_scale, point_sums,
+                       row_members, row_weights, share_of)
+
+#: Coarse positions at least this share of the threshold are refined.
+REFINE = 0.7
+#: Beyond this share of the map to refine, the whole map is summed instead: a refined
+#: position's detector samples are read from scattered addresses, 50-70x the cost of a
+#: position of the whole map's streamed sum (measured on the 20-minute benchmark scans).
+MAX_REFINED = 0.01
+
+
+class SlideSearch:
+    """The maxima of the time slides of one scan's S/N ``snr`` (finite, (ndet, nsamp)):
+    what every slide shares (weights, the coarse sampling's phases) is prepared once."""
+
+    def __init__(self, snr, geometry, rows, beam_sigma, sigma_amp, live, window):
+        self.snr, self.geometry, self.rows, self.window = snr, geometry, rows, int(window)
+        self.args = (beam_sigma, sigma_amp, live)
+        self.weights, self.norm = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
+        self.indptr, self.members = row_members(self.weights)
+        self.weights32 = self.weights.astype(np.float32)
+        self.norm32 = self.norm.astype(np.float32)
+        self.snr32 = np.asarray(snr, np.float32)
+        # a slide's Z where it was summed: where ``stamp`` is +-the slide's number
+        shape = (len(rows), snr.shape[1])
+        self.z, self.stamp, self.slide = np.empty(shape, np.float32), np.zeros(shape, np.int32), 0
+        self.step = geometry.crossing_samples(beam_sigma)
+        self.scale = None          # the slides' measured spread (unnormalized Z)
+        self.phases = sample_phases(snr, self.step)
+        self.coarse_weights = np.ascontiguousarray(self.weights[::2], np.float32)
+        self.coarse_used = np.flatnonzero(np.any(self.coarse_weights != 0, axis=0))
+
+    def maxima(self, offsets, floor):
+        """``(rows, samples, z, scale)``: the local maxima of the slide ``offsets``'s map
+        (unnormalized Z, as :func:`so_transients.coherent.coherent_map`'s, float32 sums) at
+        least ``floor`` x ``scale`` in a neighbourhood of one row and ``window`` samples
+        either side, and ``scale``, the slides' measured spread (robust standard deviation
+        of the first slide's whole coarse map: the slides of a scan differ only in which
+        noise samples line up, so their spread is the scan's, and one measurement of
+        ~10^5 values, to about 0.5 %, sets every slide's threshold alike)."""
+        nsamp = self.snr.shape[1]
+        shifts = (self.geometry.lag_samples + np.asarray(offsets, np.int64)) % nsamp
+        coarse = self.coarse_map(shifts)
+        if self.scale is None:   # a slide's spread is the scan's: measured on the first
+            self.scale = measured_scale(coarse, coarse.size)
+        scale = self.scale
+        threshold = floor * scale
+        fc, fr = np.nonzero(coarse.T >= REFINE * threshold)    # in time order: a peak's
+        #                                                   positions share detector samples
+        if len(fr) * 3 * (2 * self.step + 1) > MAX_REFINED * self.z.size:
+            z, _ = coherent_map(self.snr, self.geometry, self.rows, *self.args, offsets,
+                                with_flux=False, finite=True, dtype=np.float32)
+            r, s = local_maxima(z, threshold, self.window)
+            return r, s, z[r, s], scale
+        self.slide += 1          # (2^31 slides of one scan before it wraps)
+        r, s = _refined_maxima(self.snr32, self.weights32, self.indptr, self.members, shifts,
+                               self.norm32, fr, fc, self.step, self.window, self.z,
+                               self.stamp, self.slide, np.float32(threshold))
+        return r, s, self.z[r, s], scale
+
+    def largest_share(self, rows, samples, offsets):
+        """:func:`so_transients.coherent.largest_share` of the slide ``offsets``'s map at
+        (``rows``, ``samples``)."""
+        shifts = self.geometry.lag_samples + np.asarray(offsets, np.int64)
+        total, best = point_sums(self.snr, self.weights, self.indptr, self.members, shifts,
+                                 rows, samples)
+        return share_of(total, best)
+
+    def coarse_map(self, shifts):
+        """Z on every other row and every ``step``-th sample (both from 0), from the
+        detectors' cyclic ``shifts`` (samples, in [0, nsamp))."""
+        acc = np.zeros((len(self.coarse_weights), self.phases.shape[2]), np.float32)
+        _coarse_shift_add(self.phases, self.snr.shape[1], self.coarse_weights,
+                          self.coarse_used, shifts, acc)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return acc / self.norm[::2, None].astype(np.float32)
+
+
+def sample_phases(snr, step):
+    """``(step, ndet, ceil(nsamp / step))``: ``out[p, d, j] = snr[d, j * step + p]`` (0
+    past the end), so that every ``step``-th sample from any start is contiguous."""
+    ndet, nsamp = snr.shape
+    out = np.zeros((step, ndet, -(-nsamp // step)), np.float32)
+    for p in range(step):
+        part = snr[:, p::step]
+        out[p, :, :part.shape[1]] = part
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _coarse_shift_add(phases, nsamp, weights, used, shifts, acc):
+    """``acc[r, j] += weights[r, d] * snr[d, (j * step + shifts[d]) % nsamp]`` from the
+    ``phases`` of ``snr`` (:func:`sample_phases`)."""
+    step = phases.shape[0]
+    nrow, ncol = acc.shape
+    for k in range(len(used)):
+        d = used[k]
+        s = shifts[d]
+        wrap = min(ncol, (nsamp - s + step - 1) // step)   # first column whose index wraps
+        late = s - nsamp                                   # its index: j * step + late
+        p_late = late % step
+        for r in range(nrow):
+            w = weights[r, d]
+            if w != 0.0:
+                add_slice(acc[r], phases[s % step, d], w, 0, wrap, s // step)
+                add_slice(acc[r], phases[p_late, d], w, wrap, ncol, (late - p_late) // step)
+
+
+@njit(cache=True, nogil=True)
+def _refined_maxima(snr, weights, indptr, members, shifts, norm, rows, cols, step, window,
+                    z, stamp, slide, threshold):
+    """``(rows, samples)`` of the local maxima at least ``threshold`` within one row and
+    ``step`` samples of the coarse positions (``rows``, ``cols``: every other row, every
+    ``step``-th sample), no position within one row and ``window`` samples higher (as
+    :func:`so_transients.coherent.local_maxima`). ``z`` is summed where it is needed:
+    there ``stamp`` is set to ``slide``."""
+    nrow, nsamp = z.shape
+    # the cores, merged into runs row by row, then summed run by run
+    run_rows, run_lo, run_hi = _core_runs(rows, cols, step, nrow, nsamp)
+    for k in range(len(run_rows)):
+        _sum_span(snr, weights, indptr, members, shifts, norm, z, stamp, slide, run_rows[k],
+                  run_lo[k], run_hi[k])
+    out_rows, out_samples = [], []
+    for k in range(len(rows)):
+        r, t = 2 * rows[k], cols[k] * step
+        for rr in range(max(r - 1, 0), min(r + 2, nrow)):
+            for tt in range(max(t - step, 0), min(t + step + 1, nsamp)):
+                if z[rr, tt] < threshold or stamp[rr, tt] != slide:
+                    continue
+                stamp[rr, tt] = -slide        # tested (its value is kept)
+                for r2 in range(max(rr - 1, 0), min(rr + 2, nrow)):
+                    _sum_span(snr, weights, indptr, members, shifts, norm, z, stamp, slide,
+                              r2, max(tt - window, 0), min(tt + window + 1, nsamp))
+                if _is_top(z, rr, tt, window):
+                    out_rows.append(rr)
+                    out_samples.append(tt)
+    return np.array(out_rows, np.int64), np.array(out_samples, np.int64)
+
+
+@njit(cache=True, nogil=True)
+def _core_runs(rows, cols, step, nrow, nsamp):
+    """``(rows, lo, hi)``: the fine rows and sample spans within one row and ``step``
+    samples of the coarse positions (``rows``, ``cols``), overlapping spans of a row merged,
+    in order of ``lo``."""
+    n = 3 * len(rows)
+    r_all, lo_all, hi_all = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64)
+    m = 0
+    for k in range(len(rows)):
+        r, t = 2 * rows[k], cols[k] * step
+        for rr in range(max(r - 1, 0), min(r + 2, nrow)):
+            r_all[m], lo_all[m], hi_all[m] = rr, max(t - step, 0), min(t + step + 1, nsamp)
+            m += 1
+    order = np.argsort(r_all[:m] * (nsamp + 1) + lo_all[:m])
+    out_r, out_lo, out_hi = np.empty(m, np.int64), np.empty(m, np.int64), np.empty(m, np.int64)
+    j = -1
+    for i in order:
+        if j >= 0 and r_all[i] == out_r[j] and lo_all[i] <= out_hi[j]:
+            out_hi[j] = max(out_hi[j], hi_all[i])
+        else:
+            j += 1
+            out_r[j], out_lo[j], out_hi[j] = r_all[i], lo_all[i], hi_all[i]
+    # in time order: the runs of a peak's neighbouring rows read the same detector samples
+    # while they are in cache
+    order = np.argsort(out_lo[:j + 1])
+    return out_r[order], out_lo[order], out_hi[order]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _sum_span(snr, weights, indptr, members, shifts, norm, z, stamp, slide, r, lo, hi):
+    """``z[r, lo:hi]``: the normalized sum over row ``r``'s detectors where it is not yet
+    summed in this ``slide`` (``stamp`` not +-``slide``), run by run."""
+    nsamp = z.shape[1]
+    zr = z[r]
+    t = lo
+    while t < hi:
+        if abs(stamp[r, t]) == slide:
+            t += 1
+            continue
+        end = t
+        while end < hi and abs(stamp[r, end]) != slide:
+            stamp[r, end] = slide
+            zr[end] = 0.0
+            end += 1
+        for i in range(indptr[r], indptr[r + 1]):
+            d = members[i]
+            w, s, src = weights[r, d], shifts[d], snr[d]
+            wrap = max(t, min(end, nsamp - s))
+            for u in range(t, wrap):
+                zr[u] += w * src[u + s]
+            for u in range(wrap, end):
+                zr[u] += w * src[u + s - nsamp]
+        for u in range(t, end):
+            zr[u] /= norm[r]
+        t = end
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _is_top(z, r, t, window):
+    """Whether no position within one row and ``window`` samples of (r, t) is higher."""
+    nrow, nsamp = z.shape
+    v = z[r, t]
+    for rr in range(max(r - 1, 0), min(r + 2, nrow)):
+        for tt in range(max(t - window, 0), min(t + window + 1, nsamp)):
+            if z[rr, tt] > v:
+                return False
+    return True

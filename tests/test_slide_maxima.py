@@ -1,0 +1,84 @@
+"""The coarse-to-fine search of a time slide's maxima finds those of the full map."""
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from so_transients.coherent import (coherent_map, largest_share, local_maxima, measured_scale,
+                                    row_offsets, time_slide_offsets)
+from so_transients.significance import Background
+from so_transients.slide_maxima import SlideSearch
+from test_coherent import SIGMA_BEAM, ROW_STEP, inject, wafer
+
+NSAMP = 6000
+
+
+def filtered_noise(n_det, rng, width):
+    """Unit-variance noise smoothed over ``width`` samples, as the matched filter's output is
+    over a beam crossing time (white noise would give the map peaks one sample wide)."""
+    snr = ndimage.gaussian_filter1d(rng.normal(size=(n_det, NSAMP)), width, axis=1)
+    return snr / snr.std()
+
+
+def full_maxima(snr, geometry, rows, sigma, live, offsets, threshold, window):
+    z, _ = coherent_map(snr, geometry, rows, SIGMA_BEAM, sigma, live, offsets,
+                        with_flux=False, finite=True, dtype=np.float32)
+    r, s = local_maxima(z, threshold, window)
+    return dict(zip(zip(r.tolist(), s.tolist()), z[r, s])), z
+
+
+@pytest.mark.parametrize("floor", [3.5, 4.5, 2.0])
+def test_the_search_finds_every_maximum_of_the_full_map(floor):
+    """On filtered noise with a bright source (scattered by the slides), a dead detector
+    and slides past either end: the same maxima, at the same Z (float32 sums), as the full
+    map's local maxima from the same threshold. Floor 2 is so near the noise that the whole
+    map is summed instead."""
+    rng = np.random.default_rng(11)
+    geometry, sigma = wafer(rng=rng)
+    live = np.ones(len(sigma), bool)
+    live[7] = False
+    window = geometry.crossing_samples(SIGMA_BEAM)
+    snr = filtered_noise(len(sigma), rng, window)
+    rows = row_offsets(geometry, SIGMA_BEAM, ROW_STEP)
+    inject(snr, geometry, sigma, 3000.0, 3000, rows[len(rows) // 2])
+    search = SlideSearch(snr, geometry, rows, SIGMA_BEAM, sigma, live, window)
+    found, spreads = 0, []
+    for _ in range(8):
+        offsets = time_slide_offsets(len(sigma), NSAMP, 400, rng)
+        r, s, z, scale = search.maxima(offsets, floor)
+        expected, full = full_maxima(snr, geometry, rows, sigma, live, offsets,
+                                     floor * scale, window)
+        assert set(zip(r.tolist(), s.tolist())) == set(expected)
+        assert np.allclose(z, [expected[k] for k in zip(r.tolist(), s.tolist())], rtol=1e-5)
+        spreads.append(measured_scale(full))
+        found += len(r)
+    # the threshold's spread, measured once on the first slide's coarse map, is the slides'
+    # (their mean: 8 maps' robust spreads of ~2 x 10^4 correlated values, each to ~1.5 %)
+    assert scale == pytest.approx(np.mean(spreads), rel=0.02)
+    assert found > (0 if floor > 4 else 40)      # the comparison is not empty
+
+
+def test_a_slides_largest_share_is_the_maps():
+    rng = np.random.default_rng(12)
+    geometry, sigma = wafer(rng=rng)
+    live = np.ones(len(sigma), bool)
+    window = geometry.crossing_samples(SIGMA_BEAM)
+    snr = filtered_noise(len(sigma), rng, window)
+    rows = row_offsets(geometry, SIGMA_BEAM, ROW_STEP)
+    search = SlideSearch(snr, geometry, rows, SIGMA_BEAM, sigma, live, window)
+    offsets = time_slide_offsets(len(sigma), NSAMP, 400, rng)
+    r, s, _, _ = search.maxima(offsets, 3.0)
+    assert len(r)
+    assert np.array_equal(search.largest_share(r, s, offsets),
+                          largest_share(snr, geometry, rows, SIGMA_BEAM, sigma, live, r, s,
+                                        offsets))
+
+
+def test_far_below_the_slides_floor_rests_on_the_inverted_data():
+    """Slides' maxima are searched from ``slide_floor``: below it they are not counted, so
+    ``far_slides`` is NaN and ``far`` is the sign-inverted data's rate."""
+    b = Background(np.array([4.6, 5.0, 6.0]), 10.0, np.array([3.2, 3.6, 4.1, 4.8]), 1.0,
+                   tail_from=None, floor=3.0, slide_floor=4.5)
+    far = b.far([4.0, 4.9])
+    assert np.isnan(far["far_slides"][0]) and far["far"][0] == far["far_inverted"][0] == 2.0
+    assert far["far_slides"][1] == pytest.approx(0.2) == far["far"][1]
+    assert Background(np.zeros(0), 1.0, np.zeros(0), 1.0).slide_floor == 3.0

@@ -53,6 +53,7 @@ class FindConfig:
     hit_reach: float = 2.0            # ... hits: detectors within this many beam sigmas
     stack_window: float | None = None  # ... s: crossings stacked (None: no sweep stacking)
     stack_seed: float = 3.0           # ... stacks start from single-crossing maxima this high
+    stack_max_share: float = 0.7      # ... and one crossing makes at most this of their sum
 
     def __post_init__(self):
         positive("transient_find", dbscan_min_samples=self.dbscan_min_samples,
@@ -62,9 +63,16 @@ class FindConfig:
                  coherent_threshold=self.coherent_threshold, row_step=self.row_step,
                  max_single_share=self.max_single_share,
                  max_instant_share=self.max_instant_share, hit_reach=self.hit_reach,
-                 stack_window=self.stack_window, stack_seed=self.stack_seed)
+                 stack_window=self.stack_window, stack_seed=self.stack_seed,
+                 stack_max_share=self.stack_max_share)
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {', '.join(MODES)}, got {self.mode!r}")
+
+    @property
+    def stacking_window(self):
+        """s of crossings sweep stacking adds (coherent mode with ``stack_window``), or
+        None."""
+        return self.stack_window if self.mode == "coherent" else None
 
     @property
     def eps(self):

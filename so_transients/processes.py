@@ -43,6 +43,7 @@ SLOTS = "archive_slots"      # scalars in aman.transient_candidates: find's arch
 MIN_DETS = "min_dets"        # ... and detector threshold, for the later steps (and
 STACK_WINDOW = "stack_window"  # ... its sweep stacking (s, NaN: none) and seed Z, for
 STACK_SEED = "stack_seed"      # ... transient_significance, and
+STACK_SHARE = "stack_max_share"  # ... the largest share one crossing may have of a stack
 #                              fit.SPEED_TOLERANCE, the scan-speed tolerance)
 
 
@@ -282,6 +283,7 @@ class TransientFind(_Preprocess):
           hit_reach: 2.0                  # hits: detectors within this many beam sigmas
           stack_window: null              # s: stack crossings this long (null: no stacking)
           stack_seed: 3.0                 # stacks start from single-crossing maxima this high
+          stack_max_share: 0.7            # ... and one crossing makes at most this of the sum
         save: true
 
     ``mode: coherent`` replaces the S/N >= 3 clustering by the maxima of the coherent
@@ -296,8 +298,8 @@ class TransientFind(_Preprocess):
     ``n_crossings`` > 1, whose hits are its strongest crossing's and whose ``t_start`` /
     ``t_stop`` span its crossings; ``transient_fit`` fits it with the position held on each
     crossing and combines the fluxes, and ``transient_significance`` gives it a ``far``
-    from stacks of the sign-inverted maps. ``stack_window`` and ``stack_seed`` are kept in
-    ``aman.transient_candidates`` for those steps.
+    from stacks of the sign-inverted maps. ``stack_window``, ``stack_seed`` and
+    ``stack_max_share`` are kept in ``aman.transient_candidates`` for those steps.
     """
 
     name = "transient_find"
@@ -342,6 +344,7 @@ class TransientFind(_Preprocess):
         table.wrap(SPEED_TOLERANCE, float(self.cfg.speed_tolerance))
         table.wrap(STACK_WINDOW, float(self.cfg.stack_window or np.nan))
         table.wrap(STACK_SEED, float(self.cfg.stack_seed))
+        table.wrap(STACK_SHARE, float(self.cfg.stack_max_share))
         _replace(aman, "transient_candidates", table)
         _replace(aman, "transient_hits", candidates.to_aman(hits, HIT_AXIS, len(hits["cand"])))
         _replace(aman, SCAN_FIELD, scan.astype(np.int32), [(0, "samps")])
@@ -504,9 +507,12 @@ class TransientSignificance(_Preprocess):
 
 
 def _stacking(cands):
-    """``transient_find``'s sweep stacking (window s, seed Z), or None."""
+    """``transient_find``'s sweep stacking (window s, seed Z, largest crossing share), or
+    None."""
     window = float(cands[STACK_WINDOW]) if STACK_WINDOW in cands._fields else np.nan
-    return (window, float(cands[STACK_SEED])) if np.isfinite(window) else None
+    share = (float(cands[STACK_SHARE]) if STACK_SHARE in cands._fields
+             else FindConfig().stack_max_share)
+    return (window, float(cands[STACK_SEED]), share) if np.isfinite(window) else None
 
 
 @_register

@@ -186,6 +186,8 @@ class Background:
     tail_from: float | None = 3.5    # the inverted maxima's tail model starts here
     floor: float = 3.0               # maxima were counted from this Z
     slide_floor: float | None = None  # the slides' from this one (None: ``floor``)
+    stacks: np.ndarray | None = None  # Z of the inverted data's sweep stacks (None: no
+    #                                   stacking), over ``data_hours``
 
     def __post_init__(self):
         self.slide_floor = self.floor if self.slide_floor is None else float(self.slide_floor)
@@ -222,11 +224,22 @@ class Background:
         slides, inverted = np.where(finite, slides, np.nan), np.where(finite, inverted, np.nan)
         return dict(far=np.fmax(slides, inverted), far_slides=slides, far_inverted=inverted)
 
-    def threshold(self, rate, step=0.005, top=30.0) -> float:
-        """The lowest Z (to ``step``) whose ``far`` is at most ``rate`` (NaN when no Z up to
-        ``top`` reaches it, e.g. slides too short to resolve it)."""
+    def stack_far(self, z) -> np.ndarray:
+        """``far`` (per hour of the wafer-band) of sweep stacks with statistics ``z``: the
+        inverted data's stacks at least as high, counted and beyond ``tail_from`` modelled
+        (NaN without stacking)."""
+        z = np.atleast_1d(np.asarray(z, float))
+        if self.stacks is None:
+            return np.full(z.shape, np.nan)
+        return np.where(np.isfinite(z), inverted_rate(z, self.stacks, self.data_hours,
+                                                      self.tail_from), np.nan)
+
+    def threshold(self, rate, step=0.005, top=30.0, stacked=False) -> float:
+        """The lowest Z (to ``step``) whose ``far`` (``stacked``: a sweep stack's) is at most
+        ``rate`` (NaN when no Z up to ``top`` reaches it, e.g. slides too short to resolve
+        it)."""
         grid = np.arange(self.floor, top, step)
-        far = self.far(grid)["far"]
+        far = self.stack_far(grid) if stacked else self.far(grid)["far"]
         ok = np.flatnonzero(far <= rate)
         return float(grid[ok[0]]) if len(ok) else np.nan
 
@@ -258,7 +271,7 @@ def group_significance(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp, 
     candidate of one band of a group (``cands``: ``ra``, ``dec``, ``t_median``, ``scan``,
     and for sweep stacks ``n_crossings``, ``t_start``, ``t_stop``), and the group's
     background ``live_hours`` and ``z_scale`` (arguments as :func:`band_background`).
-    ``stacking``: ``transient_find``'s sweep stacking (``window``, ``seed``), which its
+    ``stacking``: ``transient_find``'s sweep stacking (``window``, ``seed``, ``share``), which its
     stacks' statistic and background repeat (:func:`stack_significance`)."""
     n = len(cands["scan"])
     stat = np.full(n, np.nan)
@@ -310,7 +323,6 @@ def stack_significance(maps, cands, stacked, bore_q, timestamps, beam_sigma, dat
     the sign-inverted maps' stacks at least as high (counted, and beyond ``tail_from`` the
     tail model), over the data's live time; time slides are not stacked (``far_slides``
     NaN)."""
-    window, seed = stacking
     reach = cfg.row_step * beam_sigma
     z = []
     for c in np.flatnonzero(stacked):
@@ -318,12 +330,22 @@ def stack_significance(maps, cands, stacked, bore_q, timestamps, beam_sigma, dat
                        cands["t_start"][c] - 1.0, cands["t_stop"][c] + 1.0, reach)
         z.append(np.nan if res is None else res["z"])
     z = np.asarray(z, float)
-    settings = SimpleNamespace(stack_seed=seed, max_single_share=cfg.max_single_share)
-    background = inverted_stacks(maps, bore_q, timestamps, beam_sigma, cfg.row_step, window,
-                                 settings, cfg.background_floor)
+    background = stack_background(maps, bore_q, timestamps, beam_sigma, cfg, stacking)
     far = np.where(np.isfinite(z), inverted_rate(z, background, data_hours, cfg.tail_from),
                    np.nan)
     return dict(coherent_snr=z, far=far, far_inverted=far, far_slides=np.full(len(z), np.nan))
+
+
+def stack_background(maps, bore_q, timestamps, beam_sigma, cfg: SignificanceConfig,
+                     stacking) -> np.ndarray:
+    """Z of the sign-inverted maps' sweep stacks (``maps``: :func:`stack_map` of every scan;
+    ``stacking``: ``transient_find``'s window, seed and largest crossing share), from
+    ``background_floor`` up: the
+    background of stacked candidates over the maps' live time."""
+    window, seed, share = stacking
+    settings = SimpleNamespace(stack_seed=seed, stack_max_share=share)
+    return inverted_stacks(maps, bore_q, timestamps, beam_sigma, cfg.row_step, window,
+                           settings, cfg.background_floor)
 
 
 def significance_by_band(snr, timestamps, bore_q, xi, eta, scan, sigma_amp, live, beam_sigma,
@@ -332,7 +354,8 @@ def significance_by_band(snr, timestamps, bore_q, xi, eta, scan, sigma_amp, live
     group (its detectors and candidates), the ``transient_significance`` columns for every
     candidate (candidates of a band with no live detector: NaN, passing), and the background
     live time and Z scale of the group (the first band's; one band per group in SO's
-    grouping). ``stacking``: ``transient_find``'s sweep stacking (window, seed) or None."""
+    grouping). ``stacking``: ``transient_find``'s sweep stacking (window, seed, share) or
+    None."""
     n = len(cands["scan"])
     out = dict(coherent_snr=np.full(n, np.nan), far=np.full(n, np.nan),
                far_slides=np.full(n, np.nan), far_inverted=np.full(n, np.nan),

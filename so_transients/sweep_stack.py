@@ -17,7 +17,9 @@ enough to stack above the threshold almost always gives one of its crossings Z >
 seed is stacked over the crossings within ``stack_window`` seconds centred on it; a stack is
 kept when it reaches ``coherent_threshold``, is higher than every single crossing in it (the
 single-crossing search already has the rest), and no single crossing makes more than
-``max_single_share`` of its sum (a glitch stacked with noise). Of stacks within two beam
+``stack_max_share`` of its sum (a glitch stacked with noise). Beating the best crossing
+already bounds that share by 1/sqrt(N) for N crossings of equal weight (0.71 for two), so
+the share matters for two or three crossings; at 0.5 no stack of two could pass. Of stacks within two beam
 sigmas of each other whose windows overlap, the highest is kept.
 
 Everything here is on arrays (maps, boresight quaternions); no AxisManager.
@@ -128,7 +130,7 @@ def stack_seeds(maps, seeds, bore_q, timestamps, beam_sigma, row_step, window_s,
         res = stack(crossings)
         best_single = max(c.z for c in crossings)
         if (res["z"] >= cfg.coherent_threshold and res["z"] > best_single
-                and res["share"] <= cfg.max_single_share):
+                and res["share"] <= cfg.stack_max_share):
             found.append(dict(ra=ra, dec=dec, crossings=crossings, **res))
     return suppress(found, timestamps, 2.0 * beam_sigma)
 
@@ -148,7 +150,7 @@ def inverted_stacks(maps, bore_q, timestamps, beam_sigma, row_step, window_s, cf
         seeds += [(m.scan, m.first + int(t), *sky_position(m.geometry, m.rows[row], bore_q,
                                                            m.first + int(t)))
                   for row, t in zip(r, s)]
-    settings = SimpleNamespace(coherent_threshold=floor, max_single_share=cfg.max_single_share)
+    settings = SimpleNamespace(coherent_threshold=floor, stack_max_share=cfg.stack_max_share)
     return np.array([s["z"] for s in stack_seeds(flipped, seeds, bore_q, timestamps,
                                                  beam_sigma, row_step, window_s, settings)])
 

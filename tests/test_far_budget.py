@@ -7,9 +7,10 @@ import pytest
 from astropy.table import Table
 
 from so_transients.campaign.equal_rate import efficiency_at
-from so_transients.campaign.far_budget import (background_tables, budget_table,
-                                               load_background, noise_far,
-                                               pooled_backgrounds, save_background)
+from so_transients.campaign.far_budget import (background_tables, band_budgets,
+                                               budget_margin, budget_table, load_background,
+                                               noise_far, pooled_backgrounds,
+                                               save_background)
 from so_transients.campaign.noise import Group
 from so_transients.significance import Background, SignificanceConfig
 
@@ -156,3 +157,74 @@ def test_combined_campaigns_rank_each_band_by_its_own_statistic():
     # a band's values come from its own column; missing (masked) values are NaN, not 0
     assert np.array_equal(band_statistic(rows, "bandpass", statistics), [7.0, np.nan, 6.0],
                           equal_nan=True)
+
+
+def _stacking_background(seed=1):
+    """A background whose search stacks sweeps: the inverted data's stacks have the same
+    Gaussian-like tail, 100 per hour above Z = 3."""
+    b = _background(seed=seed)
+    b.stacks = _gaussian_maxima(b.data_hours, 100, np.random.default_rng(seed + 10))
+    return b
+
+
+def test_stacks_get_their_own_budget_and_half_the_rate_each(tmp_path):
+    b = _stacking_background()
+    budget = budget_table({"f090": b}, Table({"band": [], "map_z": [], "snr_fit": [],
+                                              "detected": [], "n_crossings": []},
+                                             dtype=("U8", float, float, bool, int)),
+                          {"f090": 2.0})[0]
+    # single crossings at half the paper's rate: their Z is higher than at the whole rate
+    assert budget["z_budget"] == pytest.approx(b.threshold(1 / 24))
+    assert budget["z_budget"] > b.threshold(2 / 24)
+    # the stacks' budget: where their own far (inverted stacks, tail model) reaches it
+    z_stack = budget["z_stack_budget"]
+    assert b.stack_far(z_stack)[0] <= 1 / 24 < b.stack_far(z_stack - 0.01)[0]
+    assert budget["n_stack_maxima"] == len(b.stacks)
+    # saved, loaded and pooled with the stacks (and without: None, no stack budget)
+    folders = {}
+    for k, part in enumerate([b, _background(seed=2)]):
+        (tmp_path / f"g{k}").mkdir()
+        save_background(part, tmp_path / f"g{k}" / "background.npz", "s")
+        folders[Group("obs", f"w{k}", "f090" if k == 0 else "f150")] = tmp_path / f"g{k}"
+    assert np.array_equal(load_background(tmp_path / "g0" / "background.npz")[0].stacks,
+                          b.stacks)
+    pooled = pooled_backgrounds(*background_tables(folders))
+    assert np.array_equal(np.sort(pooled["f090"].stacks), np.sort(b.stacks))
+    assert pooled["f150"].stacks is None and np.isnan(pooled["f150"].stack_far(5.0)[0])
+
+
+def test_each_detection_is_held_to_its_own_budget():
+    """A sweep stack (n_crossings > 1) against the stacks' Z, a single crossing against the
+    single crossings'; the noise-only check and far alike."""
+    b = {"f090": _stacking_background()}
+    z, z_stack = band_budgets(b)["f090"]
+    assert np.isfinite(z_stack) and z_stack != z
+    low, high = min(z, z_stack), max(z, z_stack)
+    table = Table({"band": ["f090"] * 2, "map_z": [high - 0.01] * 2, "snr_fit": [4.0] * 2,
+                   "detected": [True] * 2, "n_crossings": [1, 4]})
+    margin = budget_margin(table, "band", {"f090": "map_z"}, band_budgets(b))
+    assert (margin >= 0).tolist() == [z == low, z_stack == low]
+    far = noise_far(b, table)
+    assert far["far"][1] == pytest.approx(b["f090"].stack_far(high - 0.01)[0])
+    assert far["far"][0] == pytest.approx(b["f090"].far(high - 0.01)["far"][0])
+
+
+def test_crossings_within_the_stacking_window_are_injected_as_one_window():
+    from so_transients.campaign.flare_injection import _stacked_runs
+    from so_transients.sim.sources import SourceCrossing
+
+    def run(lo, peak, dets):
+        crossing = SourceCrossing(np.arange(3, 8), np.zeros(5), np.zeros(5),
+                                  np.full(5, float(peak)))
+        return np.array(dets), lo, lo + 10, [crossing]
+
+    runs = [run(0, 10.0, [1, 2]), run(2000, 50.0, [2, 3]), run(3000, 20.0, [5]),
+            run(9000, 40.0, [7])]
+    merged = _stacked_runs(runs, window=4100)      # centred on the brightest, at 2005
+    assert len(merged) == 2 and merged[1] is runs[3]
+    dets, lo, hi, crossings = merged[0]
+    assert dets.tolist() == [1, 2, 3, 5] and (lo, hi) == (0, 3010)
+    # each crossing keeps its samples, now counted from the merged window's start
+    assert [int(c.samples[0]) for c in crossings] == [3, 2003, 3003]
+    assert sorted(r[1] for r in _stacked_runs(runs, window=3000)) == [0, 2000, 9000]  # 0 out
+    assert _stacked_runs(runs[:1] + runs[3:], window=4100) == runs[:1] + runs[3:]

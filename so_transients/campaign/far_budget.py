@@ -23,6 +23,12 @@ above it are the measured check of the rate. The statistic (``CampaignConfig.far
 Either is in units of its own scan's measured spread (in a campaign: the injection window's
 map), the background in units of the group's median spread; the two agree to the percent the
 spread varies between scans.
+
+With sweep stacking (``transient_find``'s ``stack_window``), a stacked detection
+(``n_crossings`` > 1) has its own background, the sign-inverted maps' stacks of the
+noise-only groups (``transient_significance``'s, :func:`so_transients.significance.stack_background`),
+and its own budget ``z_stack_budget``; single crossings and stacks each get half of the
+paper's rate, so that together they keep to it.
 """
 from __future__ import annotations
 
@@ -36,13 +42,14 @@ from astropy.table import Table
 
 from ..find import FindConfig, group_scans
 from ..scan_geometry import sample_rate
-from ..significance import Background, SignificanceConfig, band_background
+from ..significance import (Background, SignificanceConfig, band_background,
+                            stack_background, stack_map)
 from .equal_rate import PAPER_RATE_PER_WBH
 from .search_steps import step_settings
 
 log = logging.getLogger(__name__)
 LIVE_COLUMNS = ("band", "obs_id", "wafer_slot", "slide_hours", "data_hours", "scale",
-                "tail_from", "floor", "slide_floor")
+                "tail_from", "floor", "slide_floor", "stacked")
 
 
 def group_background(state, search_steps, cfg: SignificanceConfig) -> Background:
@@ -56,14 +63,28 @@ def group_background(state, search_steps, cfg: SignificanceConfig) -> Background
     dets = np.flatnonzero(~np.asarray(f.dead, bool))
     if not len(dets):
         raise ValueError(f"{where}: no live detector for the false-alarm background")
-    return band_background(state.snr, dets, state.timestamps, state.bore_q, state.xi[dets],
-                           state.eta[dets], scan, state.sigma_amp[dets],
-                           float(np.median(np.asarray(f.beam_sigma)[dets])),
-                           sample_rate(state.timestamps, where), cfg)
+    find = step_settings(search_steps, FindConfig)
+    beam = float(np.median(np.asarray(f.beam_sigma)[dets]))
+    maps = []
+
+    def keep_map(s, scan_maps):          # sweep stacking: every scan's map is stacked
+        maps.append(stack_map(s, scan_maps, beam, state.sigma_amp[dets],
+                              np.ones(len(dets), bool), state.timestamps))
+
+    background = band_background(state.snr, dets, state.timestamps, state.bore_q,
+                                 state.xi[dets], state.eta[dets], scan, state.sigma_amp[dets],
+                                 beam, sample_rate(state.timestamps, where), cfg,
+                                 keep_map if find.stacking_window else None)
+    if find.stacking_window:
+        background.stacks = stack_background(maps, state.bore_q, state.timestamps, beam, cfg,
+                                             (find.stack_window, find.stack_seed,
+                                              find.stack_max_share))
+    return background
 
 
 def save_background(background: Background, path, stamp):
-    np.savez(path, slides=background.slides, inverted=background.inverted,
+    stacks = {} if background.stacks is None else {"stacks": background.stacks}
+    np.savez(path, slides=background.slides, inverted=background.inverted, **stacks,
              live=json.dumps(dict(slide_hours=background.slide_hours,
                                   data_hours=background.data_hours, scale=background.scale,
                                   tail_from=background.tail_from, floor=background.floor,
@@ -75,7 +96,8 @@ def load_background(path) -> tuple:
     saved = np.load(path)
     live = json.loads(str(saved["live"]))
     stamp = live.pop("stamp")
-    return Background(saved["slides"], inverted=saved["inverted"], **live), stamp
+    stacks = saved["stacks"] if "stacks" in saved.files else None
+    return Background(saved["slides"], inverted=saved["inverted"], stacks=stacks, **live), stamp
 
 
 def background_done(folder, stamp) -> bool:
@@ -92,14 +114,15 @@ def background_tables(folders: dict):
         if not path.exists():
             continue
         b, _ = load_background(path)
-        for kind, z in (("slides", b.slides), ("inverted", b.inverted)):
+        stacks = () if b.stacks is None else b.stacks
+        for kind, z in (("slides", b.slides), ("inverted", b.inverted), ("stacks", stacks)):
             maxima += [(group.band, kind, float(v)) for v in z]
         live.append((group.band, group.obs_id, group.wafer, b.slide_hours, b.data_hours,
                      b.scale, np.nan if b.tail_from is None else b.tail_from, b.floor,
-                     b.slide_floor))
+                     b.slide_floor, b.stacks is not None))
     maxima = Table(rows=maxima or None, names=("band", "kind", "z"), dtype=("U8", "U8", float))
     live = Table(rows=live or None, names=LIVE_COLUMNS,
-                 dtype=("U8", "U64", "U8", float, float, float, float, float, float))
+                 dtype=("U8", "U64", "U8", float, float, float, float, float, float, bool))
     live["slide_hours"].unit = live["data_hours"].unit = u.hour
     return maxima, live
 
@@ -117,7 +140,9 @@ def pooled_backgrounds(maxima: Table, live: Table) -> dict:
             np.asarray(mine["z"][mine["kind"] == "inverted"], float),
             float(np.sum(rows["data_hours"])), np.nan,
             None if not np.isfinite(tail) else tail, float(rows["floor"][0]),
-            float(np.max(rows["slide_floor"])))
+            float(np.max(rows["slide_floor"])),
+            np.asarray(mine["z"][mine["kind"] == "stacks"], float)
+            if "stacked" in rows.colnames and np.any(rows["stacked"]) else None)
     return out
 
 
@@ -149,33 +174,31 @@ def band_statistic(table: Table, band_key: str, statistics: dict) -> np.ndarray:
 
 def budget_table(backgrounds: dict, fitted_noise: Table, wafer_hours: dict,
                  statistics: dict | None = None) -> Table:
-    """Per band: the Z at the paper's rate, the background behind it, and the noise-only
-    detections whose statistic (``statistics``: {band: column}, default ``map_z``) is at
-    least that high (measured rate per wafer-band-hour beside the target)."""
+    """Per band: the Z at the paper's rate (``z_budget``; with sweep stacking half the rate
+    each for single crossings and for stacks, ``z_stack_budget``), the background behind it,
+    and the noise-only detections whose statistic (``statistics``: {band: column}, default
+    ``map_z``) reaches their budget (measured rate per wafer-band-hour beside the target)."""
     statistics = statistics or {band: "map_z" for band in backgrounds}
-    z_noise = band_statistic(fitted_noise, "band", statistics)
+    budgets = band_budgets(backgrounds)
+    above = budget_margin(fitted_noise, "band", statistics, budgets) >= 0
     rows = []
     for band, b in backgrounds.items():
         target = PAPER_RATE_PER_WBH.get(band, np.nan)
-        z = b.threshold(target) if np.isfinite(target) else np.nan
-        if np.isfinite(target) and not np.isfinite(z):
-            log.warning("%s: %.1f h of slides and %.2f h of inverted data cannot resolve the "
-                        "paper's rate of %.3f per wafer-band-hour: no thresholds at a "
-                        "false-alarm budget (more noise-only hours or n_slides)", band,
-                        b.slide_hours, b.data_hours, target)
+        z, z_stack = budgets[band]
         mine = np.asarray(fitted_noise["band"]).astype(str) == band
-        found = np.asarray(fitted_noise["detected"], bool)[mine] & (z_noise[mine] >= z)
+        found = np.asarray(fitted_noise["detected"], bool)[mine] & above[mine]
         hours = wafer_hours.get(band, np.nan)
         n = int(found.sum())
-        rows.append((band, statistics[band], target, z, b.slide_hours, b.data_hours,
-                     len(b.slides), len(b.inverted), hours, n, n / hours,
-                     np.sqrt(max(n, 1)) / hours, target * hours))
+        rows.append((band, statistics[band], target, z, z_stack, b.slide_hours, b.data_hours,
+                     len(b.slides), len(b.inverted), 0 if b.stacks is None else len(b.stacks),
+                     hours, n, n / hours, np.sqrt(max(n, 1)) / hours, target * hours))
     table = Table(rows=rows or None,
-                  names=("band", "statistic", "target_per_wbh", "z_budget", "slide_hours",
-                         "data_hours", "n_slide_maxima", "n_inverted_maxima", "wafer_hours",
-                         "n_noise_above", "noise_rate", "noise_rate_err", "expected_above"),
-                  dtype=("U8", "U16", float, float, float, float, int, int, float, int, float,
-                         float, float))
+                  names=("band", "statistic", "target_per_wbh", "z_budget", "z_stack_budget",
+                         "slide_hours", "data_hours", "n_slide_maxima", "n_inverted_maxima",
+                         "n_stack_maxima", "wafer_hours", "n_noise_above", "noise_rate",
+                         "noise_rate_err", "expected_above"),
+                  dtype=("U8", "U16", float, float, float, float, float, int, int, int, float,
+                         int, float, float, float))
     for name in ("slide_hours", "data_hours", "wafer_hours"):
         table[name].unit = u.hour
     for name in ("target_per_wbh", "noise_rate", "noise_rate_err"):
@@ -183,11 +206,48 @@ def budget_table(backgrounds: dict, fitted_noise: Table, wafer_hours: dict,
     return table
 
 
+def band_budgets(backgrounds: dict) -> dict:
+    """``{band: (z_budget, z_stack_budget)}``: the lowest Z of a single crossing and of a
+    sweep stack (NaN without stacking) within the paper's rate, split in halves between the
+    two when the band's search stacks."""
+    out = {}
+    for band, b in backgrounds.items():
+        target = PAPER_RATE_PER_WBH.get(band, np.nan)
+        rate = target / 2 if b.stacks is not None else target
+        z = b.threshold(rate) if np.isfinite(rate) else np.nan
+        z_stack = b.threshold(rate, stacked=True) if b.stacks is not None and \
+            np.isfinite(rate) else np.nan
+        if np.isfinite(target) and not np.isfinite(z):
+            log.warning("%s: %.1f h of slides and %.2f h of inverted data cannot resolve the "
+                        "paper's rate of %.3f per wafer-band-hour: no thresholds at a "
+                        "false-alarm budget (more noise-only hours or n_slides)", band,
+                        b.slide_hours, b.data_hours, target)
+        out[band] = (z, z_stack)
+    return out
+
+
+def budget_margin(table: Table, band_key: str, statistics: dict, budgets: dict) -> np.ndarray:
+    """Each row's statistic (:func:`band_statistic`) less its budget (:func:`band_budgets`:
+    a sweep stack's, ``n_crossings`` > 1, or a single crossing's): >= 0 is within the
+    false-alarm budget (NaN: no statistic or no budget)."""
+    margin = band_statistic(table, band_key, statistics)
+    if not len(table):
+        return margin
+    bands = np.asarray(table[band_key]).astype(str)
+    stacked = (np.ma.filled(np.ma.asarray(table["n_crossings"], float), 1.0) > 1
+               if "n_crossings" in table.colnames else np.zeros(len(table), bool))
+    for i, band in enumerate(bands):
+        z, z_stack = budgets.get(band, (np.nan, np.nan))
+        margin[i] -= z_stack if stacked[i] else z
+    return margin
+
+
 def noise_far(backgrounds: dict, fitted_noise: Table, statistics: dict | None = None
               ) -> Table:
     """The noise-only detections with their statistic ``z`` (``statistics`` as for
-    :func:`budget_table`) and the ``far`` it has (calibration: the number with ``far <= x``
-    should be ``x`` times the wafer-band-hours)."""
+    :func:`budget_table`) and the ``far`` it has (a sweep stack's from the stacks'
+    background; calibration: the number with ``far <= x`` should be ``x`` times the
+    wafer-band-hours)."""
     statistics = statistics or {band: "map_z" for band in backgrounds}
     keep = (np.asarray(fitted_noise["detected"], bool)
             & np.isin(np.asarray(fitted_noise["band"]).astype(str), list(backgrounds))
@@ -195,10 +255,14 @@ def noise_far(backgrounds: dict, fitted_noise: Table, statistics: dict | None = 
     bands = np.asarray(fitted_noise["band"]).astype(str)[keep] if keep.any() else []
     out = Table({"band": np.asarray(bands, "U8"),
                  "z": band_statistic(fitted_noise, "band", statistics)[keep]})
+    stacked = (np.ma.filled(np.ma.asarray(fitted_noise["n_crossings"], float), 1.0)[keep] > 1
+               if "n_crossings" in fitted_noise.colnames else np.zeros(len(out), bool))
     far = np.full(len(out), np.nan)
     for band, b in backgrounds.items():
         sel = np.asarray(out["band"]).astype(str) == band
-        far[sel] = b.far(np.asarray(out["z"][sel], float))["far"]
+        z = np.asarray(out["z"], float)
+        far[sel & ~stacked] = b.far(z[sel & ~stacked])["far"]
+        far[sel & stacked] = b.stack_far(z[sel & stacked])
     out["far"] = far * (1 / u.hour)
     return out
 

@@ -96,6 +96,35 @@ def _expected_snr(signal, sigma_amp):
     return float(np.max(peak[live] / sigma_amp[live], initial=0.0))
 
 
+def _run_window(state, track, run, pad, reach):
+    """``(dets, lo, hi, [crossing])`` of one crossing (``run``: its indices in ``track``):
+    the samples ``pad`` either side of it, the detectors within ``reach`` of its track, and
+    the crossing with samples counted from ``lo``."""
+    lo = max(int(track.samples[run[0]]) - pad, 0)
+    hi = min(int(track.samples[run[-1]]) + pad + 1, len(state.timestamps))
+    local = SourceCrossing(track.samples[run] - lo, track.xi[run], track.eta[run],
+                           track.flux[run])
+    return _strip(state, local, reach), lo, hi, [local]
+
+
+def _stacked_runs(runs, window):
+    """The crossings within ``window`` samples centred on the brightest (the most flux) as
+    one window (the union of their detectors, their samples from the first to the last), so
+    that ``transient_find``'s sweep stacking sees them together; the others as they are."""
+    peak = [float(np.max(c[0].flux)) for *_, c in runs]
+    centre = [0.5 * (lo + hi) for _, lo, hi, _ in runs]
+    t0 = centre[int(np.argmax(peak))]
+    inside = [abs(c - t0) <= window / 2 for c in centre]
+    if sum(inside) < 2:
+        return runs
+    group = [r for r, keep in zip(runs, inside) if keep]
+    lo = min(r[1] for r in group)
+    merged = (np.unique(np.concatenate([r[0] for r in group])), lo, max(r[2] for r in group),
+              [SourceCrossing(c.samples + (r[1] - lo), c.xi, c.eta, c.flux)
+               for r in group for c in r[3]])
+    return [merged] + [r for r, keep in zip(runs, inside) if not keep]
+
+
 def inject_flare(state, flare, search, options) -> CrossingResult:
     """Inject ``flare`` (a truth-table row) into one prepared group and search each crossing."""
     band = get_band(state.group.band)
@@ -108,21 +137,18 @@ def inject_flare(state, flare, search, options) -> CrossingResult:
     result = CrossingResult(crossing_times(state.timestamps, state.bore_q, state.xi, state.eta,
                                            flare, band.fwhm,
                                            track=(track.samples, track.xi, track.eta)))
-    windows = []
     pad = int(round(options.window_pad * state.model.sample_rate))
-    nsamp = len(state.timestamps)
-    for run in _runs(track.samples):
-        lo = max(int(track.samples[run[0]]) - pad, 0)
-        hi = min(int(track.samples[run[-1]]) + pad + 1, nsamp)
-        local = SourceCrossing(track.samples[run] - lo, track.xi[run], track.eta[run],
-                               track.flux[run])
-        dets = _strip(state, local, options.strip_sigma * sigma)
+    runs = [_run_window(state, track, run, pad, options.strip_sigma * sigma)
+            for run in _runs(track.samples)]
+    if search.stack_window and len(runs) > 1:
+        runs = _stacked_runs(runs, search.stack_window * state.model.sample_rate)
+    windows = []
+    for dets, lo, hi, crossings in runs:
         signal = np.zeros((len(dets), hi - lo), np.float32)
         response = state.response
-        add_sources(signal, response.xi[dets], response.eta[dets], [local], sigma)
+        add_sources(signal, response.xi[dets], response.eta[dets], crossings, sigma)
         response.observe(signal, dets, state.model.sample_rate)
-        expected = _expected_snr(signal, state.sigma_amp[dets])
-        windows.append((expected, dets, lo, hi, signal))
+        windows.append((_expected_snr(signal, state.sigma_amp[dets]), dets, lo, hi, signal))
     windows.sort(key=lambda w: -w[0])
     tables = []
     for rank, (expected, dets, lo, hi, signal) in enumerate(windows):

@@ -104,14 +104,18 @@ def far_section(budget):
              "Background of the noise-only hours (`transient_significance`: time slides and "
              "the sign-inverted data, `far_background.ecsv`); `z_budget`: the lowest Z whose "
              f"`far` is the paper's rate. Noise-only detections with `{statistic}` at least "
-             "that high, against the number the budget expects. Thresholds in the next "
-             "section.",
-             "", "| band | paper's rate | Z at that rate | slides (h) | inverted data (h) "
-             "| noise-only above: measured / expected |", "|---|---:|---:|---:|---:|---:|"]
+             "that high, against the number the budget expects. With sweep stacking, single "
+             "crossings and stacks (their own budget, from the inverted data's stacks) get "
+             "half the rate each. Thresholds in the next section.",
+             "", "| band | paper's rate | Z at that rate | stacks' Z | slides (h) | inverted "
+             "data (h) | noise-only above: measured / expected |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
     for r in budget:
+        z_stack = r["z_stack_budget"] if "z_stack_budget" in budget.colnames else np.nan
         lines.append(f"| {r['band']} | {r['target_per_wbh']:.3f} | {_f(r['z_budget'], '{:.2f}')}"
-                     f" | {r['slide_hours']:.1f} | {r['data_hours']:.2f} | "
-                     f"{r['n_noise_above']} / {r['expected_above']:.2f} |")
+                     f" | {_f(z_stack, '{:.2f}')} | {r['slide_hours']:.1f} | "
+                     f"{r['data_hours']:.2f} | {r['n_noise_above']} / "
+                     f"{r['expected_above']:.2f} |")
     return lines + [""]
 
 

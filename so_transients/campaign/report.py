@@ -116,8 +116,8 @@ def flux_residual_table(detections: Table) -> Table:
         return Table(names=("bandpass", "t_rise", "s_peak", "flux", "flux_true", "residual",
                             "peak_residual", "nearest_peak"))
     keep = ["source_id", "obs_id", "wafer_slot", "bandpass", "t_rise", "s_peak", "t_peak",
-            "flux", "flux_err", "flux_true", "snr_fit", "map_z", "coherent_snr", "n_dets", "dt",
-            "offset", "nearest_peak"]
+            "flux", "flux_err", "flux_true", "snr_fit", "map_z", "coherent_snr", "n_crossings",
+            "n_dets", "dt", "offset", "nearest_peak"]
     out = detections[[c for c in keep if c in detections.colnames]]
     flux_true = np.asarray(out["flux_true"], float)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -240,11 +240,15 @@ def fitted_noise_table(folders: dict) -> Table:
             for name in STATISTICS:
                 part[name] = (np.asarray(table[name], float) if name in table.colnames
                               else nan)
+            part["n_crossings"] = (np.asarray(table["n_crossings"], int)
+                                   if "n_crossings" in table.colnames
+                                   else np.ones(len(table), int))
             part["detected"] = np.asarray(table["detected"], bool)
             parts.append(part)
     return (vstack(parts) if parts else
-            Table(names=("band", "wafer_slot", "snr_fit") + STATISTICS + ("detected",),
-                  dtype=("U8", "U8", float) + (float,) * len(STATISTICS) + (bool,)))
+            Table(names=("band", "wafer_slot", "snr_fit") + STATISTICS
+                  + ("n_crossings", "detected"),
+                  dtype=("U8", "U8", float) + (float,) * len(STATISTICS) + (int, bool)))
 
 
 #: The coherent statistics a false-alarm budget can rank detections by (:mod:`.far_budget`).
@@ -318,16 +322,18 @@ def far_budget_tables(tables: dict, wafer_hours: dict, seed=0) -> dict:
     ``noise_far`` (the noise-only detections' far), each band ranked by the statistic
     ``far_live`` names for it (``map_z`` in coherent mode, ``coherent_snr`` in paper mode)."""
     from .equal_rate import efficiency_at
-    from .far_budget import (band_statistic, budget_table, live_statistics, noise_far,
-                             pooled_backgrounds)
+    from .far_budget import (band_budgets, budget_margin, budget_table, live_statistics,
+                             noise_far, pooled_backgrounds)
 
     statistics = live_statistics(tables["far_live"])
     backgrounds = pooled_backgrounds(tables["far_background"], tables["far_live"])
     budget = budget_table(backgrounds, tables["fitted_noise"], wafer_hours, statistics)
-    cut = {str(r["band"]): float(r["z_budget"]) for r in budget}
     matched = tables["flux_residuals"].copy(copy_data=False)
-    matched["budget_z"] = band_statistic(matched, "bandpass", statistics)
-    eff = efficiency_at(tables["flares"], matched, cut, column="budget_z")
+    # each detection against its own budget (a sweep stack's or a single crossing's)
+    matched["budget_margin"] = budget_margin(matched, "bandpass", statistics,
+                                             band_budgets(backgrounds))
+    eff = efficiency_at(tables["flares"], matched, {band: 0.0 for band in backgrounds},
+                        column="budget_margin")
     return dict(far_budget=budget, efficiency_far=eff,
                 thresholds_far=threshold_table(eff, seed),
                 noise_far=noise_far(backgrounds, tables["fitted_noise"], statistics))

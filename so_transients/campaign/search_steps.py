@@ -28,7 +28,7 @@ SEARCH_STEPS = tuple(s for s in candidates.STEPS if s != "transient_significance
 #: Columns of a campaign's detection tables (besides ``obs_id``).
 DETECTION_COLUMNS = ("bandpass", "wafer_slot", "t_peak", "ra", "dec", "ra_err", "dec_err",
                      "flux", "flux_err", "snr_fit", "n_dets", "snr_max", "map_z",
-                     "coherent_snr")
+                     "coherent_snr", "n_crossings")
 
 
 def split_pipe(process_pipe):
@@ -68,6 +68,10 @@ class SearchSteps:
     with saving and plotting off; ``error_scale`` fixes the fit's error scale."""
 
     def __init__(self, steps, error_scale=None):
+        names = [entry["name"] for entry in steps]
+        #: ``transient_find``'s sweep-stacking window (s; None: no stacking)
+        self.stack_window = (step_settings(steps, FindConfig).stacking_window
+                             if "transient_find" in names else None)
         self.steps = []
         for entry in steps:
             entry = copy.deepcopy(entry)

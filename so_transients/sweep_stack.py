@@ -114,6 +114,14 @@ def stack(crossings) -> dict:
                 flux_err=float(1.0 / np.sqrt(np.sum(n**2))), share=float(share))
 
 
+def kept(res, crossings, cfg) -> bool:
+    """Whether the stack ``res`` (:func:`stack` of ``crossings``) is a candidate: it reaches
+    ``cfg.coherent_threshold``, beats each of its crossings alone, and no crossing makes more
+    than ``cfg.stack_max_share`` of its sum."""
+    return (res["z"] >= cfg.coherent_threshold and res["z"] > max(c.z for c in crossings)
+            and res["share"] <= cfg.stack_max_share)
+
+
 def stack_seeds(maps, seeds, bore_q, timestamps, beam_sigma, row_step, window_s, cfg):
     """Stacked candidates of one band: for each seed ``(scan, sample, ra, dec)`` (group
     sample), the stack over the crossings of the maps within ``window_s`` centred on it.
@@ -128,9 +136,7 @@ def stack_seeds(maps, seeds, bore_q, timestamps, beam_sigma, row_step, window_s,
         if len(crossings) < 2:
             continue
         res = stack(crossings)
-        best_single = max(c.z for c in crossings)
-        if (res["z"] >= cfg.coherent_threshold and res["z"] > best_single
-                and res["share"] <= cfg.stack_max_share):
+        if kept(res, crossings, cfg):
             found.append(dict(ra=ra, dec=dec, crossings=crossings, **res))
     return suppress(found, timestamps, 2.0 * beam_sigma)
 

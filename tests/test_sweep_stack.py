@@ -5,7 +5,8 @@ import pytest
 
 from so_transients import candidates
 from so_transients.site import apply_overrides
-from so_transients.sweep_stack import Crossing, stack
+from so_transients.find import FindConfig
+from so_transients.sweep_stack import Crossing, kept, stack
 
 from conftest import load_group, run_imperfect_sim, run_sim, run_steps
 from test_coherent_find import coherent_pipe
@@ -25,6 +26,19 @@ def test_a_stack_is_the_weighted_sum_of_its_crossings():
     assert res["flux"] == pytest.approx((0.0004 * 80 + 0.0016 * 60) / 0.002)
     assert res["flux_err"] == pytest.approx(1 / np.sqrt(0.002))
     assert res["share"] == pytest.approx(0.12 / 0.16)
+
+
+def test_two_crossings_stack_unless_one_makes_the_sum():
+    """A steady source's two crossings (Z 5.2 and 4.8, equal weight) stack to 7.1: kept,
+    though the better one makes 52 % of the sum (a share limit of 0.5 let no pair of
+    crossings stack); a crossing of four times the other's weight makes 93 % of its stack
+    with a faint one: not kept, though the stack beats it."""
+    pair = [Crossing(0, 10, 3, 5.2, 100.0, 0.03), Crossing(1, 900, 3, 4.8, 90.0, 0.03)]
+    assert kept(stack(pair), pair, FindConfig())
+    assert not kept(stack(pair), pair, FindConfig(stack_max_share=0.5))
+    lopsided = [Crossing(0, 10, 3, 5.0, 100.0, 0.04), Crossing(1, 900, 3, 1.5, 30.0, 0.01)]
+    res = stack(lopsided)
+    assert res["z"] > 5.0 and res["share"] > 0.9 and not kept(res, lopsided, FindConfig())
 
 
 @pytest.fixture(scope="module")

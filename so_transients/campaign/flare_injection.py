@@ -11,6 +11,11 @@ the noise-only group).
 
 Each flare is injected alone: flares never interfere, which is what "not overlapping each
 other" asks of the paper's injections, and every flare sees the same noise model.
+
+With sweep stacking (``transient_find``'s ``stack_window``), the crossings within that window
+centred on the flare's brightest are one window, from the first to the last (the union of
+their detectors), so that the search stacks them as the site pipeline would; the others are
+searched one by one as before. Such a window counts as one searched crossing.
 """
 from __future__ import annotations
 

@@ -140,7 +140,7 @@ def pooled_backgrounds(maxima: Table, live: Table) -> dict:
             np.asarray(mine["z"][mine["kind"] == "inverted"], float),
             float(np.sum(rows["data_hours"])), np.nan,
             None if not np.isfinite(tail) else tail, float(rows["floor"][0]),
-            float(np.max(rows["slide_floor"])),
+            float(np.max(rows["slide_floor"])) if "slide_floor" in rows.colnames else None,
             np.asarray(mine["z"][mine["kind"] == "stacks"], float)
             if "stacked" in rows.colnames and np.any(rows["stacked"]) else None)
     return out

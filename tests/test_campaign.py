@@ -167,13 +167,14 @@ def test_a_prepared_groups_false_alarm_background(quick):
     _, search = cfg.pipeline_steps()
     group = next(g for g in campaign_groups(cfg) if g.band == "f090")
     state = GroupState.load(group, quick[0] / "noise" / "groups" / group.label, search)
-    b = group_background(state, search, SignificanceConfig(n_slides=3))
+    # slides counted from Z = 3, as the inverted data (the default floor for slides is 4.5)
+    b = group_background(state, search, SignificanceConfig(n_slides=3, slide_floor=3.0))
     duration = 600.0 / 3600
     # the constant-speed part of the 10 minutes, less the crossings cut by a scan's ends
     assert 0.5 * duration < b.data_hours < duration
     # the slides search whole scans, three times over
     assert 3 * b.data_hours <= b.slide_hours < 3 * 1.3 * b.data_hours
-    assert b.slides.min() >= b.floor and b.inverted.min() >= b.floor
+    assert b.slides.min() >= b.floor and b.inverted.min() >= b.floor and b.slide_floor == 3.0
     assert 1.0 < b.scale < 1.6      # residual atmosphere widens the data's Z (1.19 measured)
     # about a thousand maxima per hour above Z = 3 at f090 (the far calibration's 30 minutes)
     assert 100 < len(b.slides) / b.slide_hours < 10_000

@@ -251,32 +251,33 @@ def measured_scale(z, max_values=MAX_SCALE_VALUES) -> float:
     return float(mad_std(values)) if len(values) > 10 else 1.0
 
 
-def local_maxima(z, threshold, time_window, where=None):
+def local_maxima(z, threshold, time_window):
     """``(row, sample)`` of the local maxima of ``z`` at least ``threshold``, in a
     neighbourhood of one row either side and ``time_window`` samples either side (NaN is
-    never a maximum and does not hide one); ``where``: only among these positions (bool,
-    the shape of ``z``)."""
-    above = np.asarray(z) >= threshold
-    rows, samples = np.nonzero(above if where is None else above & where)
+    never a maximum and does not hide one)."""
+    rows, samples = np.nonzero(np.asarray(z) >= threshold)
     keep = _is_local_max(np.ascontiguousarray(z), rows, samples, int(time_window))
     return rows[keep], samples[keep]
 
 
 @njit(cache=True, nogil=True)
 def _is_local_max(z, rows, samples, half):
-    nrow, nsamp = z.shape
     out = np.ones(len(rows), np.bool_)
     for k in range(len(rows)):
-        r, t = rows[k], samples[k]
-        v = z[r, t]
-        for rr in range(max(r - 1, 0), min(r + 2, nrow)):
-            for tt in range(max(t - half, 0), min(t + half + 1, nsamp)):
-                if z[rr, tt] > v:
-                    out[k] = False
-                    break
-            if not out[k]:
-                break
+        out[k] = is_top(z, rows[k], samples[k], half)
     return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def is_top(z, r, t, half):
+    """Whether no position within one row and ``half`` samples of (r, t) is higher."""
+    nrow, nsamp = z.shape
+    v = z[r, t]
+    for rr in range(max(r - 1, 0), min(r + 2, nrow)):
+        for tt in range(max(t - half, 0), min(t + half + 1, nsamp)):
+            if z[rr, tt] > v:
+                return False
+    return True
 
 
 def time_slide_offsets(ndet, nsamp, min_shift, rng):

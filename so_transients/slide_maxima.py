@@ -27,8 +27,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .coherent import (add_slice, coherent_map, local_maxima, measured_scale, point_sums,
-                       row_members, row_weights, share_of)
+from .coherent import (add_slice, coherent_map, is_top, local_maxima, measured_scale,
+                       point_sums, row_members, row_weights, share_of)
 
 #: Coarse positions at least this share of the threshold are refined.
 REFINE = 0.7
@@ -102,7 +102,7 @@ class SlideSearch:
         _coarse_shift_add(self.phases, self.snr.shape[1], self.coarse_weights,
                           self.coarse_used, shifts, acc)
         with np.errstate(invalid="ignore", divide="ignore"):
-            return acc / self.norm[::2, None].astype(np.float32)
+            return acc / self.norm32[::2, None]
 
 
 def sample_phases(snr, step):
@@ -160,7 +160,7 @@ def _refined_maxima(snr, weights, indptr, members, shifts, norm, rows, cols, ste
                 for r2 in range(max(rr - 1, 0), min(rr + 2, nrow)):
                     _sum_span(snr, weights, indptr, members, shifts, norm, z, stamp, slide,
                               r2, max(tt - window, 0), min(tt + window + 1, nsamp))
-                if _is_top(z, rr, tt, window):
+                if is_top(z, rr, tt, window):
                     out_rows.append(rr)
                     out_samples.append(tt)
     return np.array(out_rows, np.int64), np.array(out_samples, np.int64)
@@ -221,15 +221,3 @@ def _sum_span(snr, weights, indptr, members, shifts, norm, z, stamp, slide, r, l
         for u in range(t, end):
             zr[u] /= norm[r]
         t = end
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _is_top(z, r, t, window):
-    """Whether no position within one row and ``window`` samples of (r, t) is higher."""
-    nrow, nsamp = z.shape
-    v = z[r, t]
-    for rr in range(max(r - 1, 0), min(r + 2, nrow)):
-        for tt in range(max(t - window, 0), min(t + window + 1, nsamp)):
-            if z[rr, tt] > v:
-                return False
-    return True

@@ -322,16 +322,17 @@ def far_budget_tables(tables: dict, wafer_hours: dict, seed=0) -> dict:
     ``noise_far`` (the noise-only detections' far), each band ranked by the statistic
     ``far_live`` names for it (``map_z`` in coherent mode, ``coherent_snr`` in paper mode)."""
     from .equal_rate import efficiency_at
-    from .far_budget import (band_budgets, budget_margin, budget_table, live_statistics,
-                             noise_far, pooled_backgrounds)
+    from .far_budget import (budget_margin, budget_table, live_statistics, noise_far,
+                             pooled_backgrounds)
 
     statistics = live_statistics(tables["far_live"])
     backgrounds = pooled_backgrounds(tables["far_background"], tables["far_live"])
     budget = budget_table(backgrounds, tables["fitted_noise"], wafer_hours, statistics)
     matched = tables["flux_residuals"].copy(copy_data=False)
     # each detection against its own budget (a sweep stack's or a single crossing's)
-    matched["budget_margin"] = budget_margin(matched, "bandpass", statistics,
-                                             band_budgets(backgrounds))
+    budgets = {str(r["band"]): (float(r["z_budget"]), float(r["z_stack_budget"]))
+               for r in budget}
+    matched["budget_margin"] = budget_margin(matched, "bandpass", statistics, budgets)
     eff = efficiency_at(tables["flares"], matched, {band: 0.0 for band in backgrounds},
                         column="budget_margin")
     return dict(far_budget=budget, efficiency_far=eff,

@@ -13,6 +13,12 @@ twice: by ``transient_significance``'s coarse-to-fine search
 and one detector's share of it: above 0.5 the background leaves it out anyway), the counts
 missed and added, the time per slide of each, and the slides' maxima per hour of the
 wafer-band from the floor.
+
+It also prints what bounds a slide's cost: the screen (the coarse map every slide sums)
+against its multiply-adds at the rate the same sum reaches with all its data in cache
+(:func:`in_cache_rate`; the screen reads its samples at a fraction of the memory's
+bandwidth, so arithmetic, not memory, bounds it), and both for 100 slides (the default)
+against the observation's FFT floor (``bench_chain.py``'s, measured in the same run).
 """
 import argparse
 import logging
@@ -25,19 +31,21 @@ os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
+from numba import njit  # noqa: E402
 from sotodlib import core  # noqa: E402
 from sotodlib.preprocess import Pipeline  # noqa: E402
 
 import so_transients  # noqa: E402,F401  registers the steps and the loader
 from so_transients import pointing  # noqa: E402
-from so_transients.coherent import (coherent_map, finite_snr, local_maxima,  # noqa: E402
-                                    row_offsets, time_slide_offsets)
+from so_transients.coherent import (add_slice, coherent_map, finite_snr,  # noqa: E402
+                                    local_maxima, row_offsets, time_slide_offsets)
 from so_transients.find import FindConfig, group_scans  # noqa: E402
+from so_transients.matched_filter import FilterConfig  # noqa: E402
 from so_transients.scan_geometry import sample_rate  # noqa: E402
 from so_transients.significance import SignificanceConfig, scan_geometry  # noqa: E402
 from so_transients.slide_maxima import SlideSearch  # noqa: E402
 
-from bench_chain import simulate_tod, standard_steps  # noqa: E402
+from bench_chain import floor as fft_floor, simulate_tod, standard_steps  # noqa: E402
 
 
 def filtered(args):
@@ -76,11 +84,16 @@ def main(argv=None):
     parser.add_argument("--floor", type=float, default=SignificanceConfig().slide_floor)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    scans, sigma, beam = scans_of(filtered(args))
+    aman = filtered(args)
+    floor_s = float(np.median([fft_floor(np.asarray(aman.signal), FilterConfig().chunk_dets)
+                               for _ in range(3)]))
+    scans, sigma, beam = scans_of(aman)
+    del aman
     cfg, rng = SignificanceConfig(), np.random.default_rng(args.seed)
     live = np.ones(len(sigma), bool)
     found = missed = added = 0
-    t_full = t_search = hours = 0.0
+    t_full = t_search = t_screen = hours = 0.0
+    adds = 0
     for snr, g in scans:
         rows = row_offsets(g, beam, cfg.row_step)
         window = g.crossing_samples(beam)
@@ -91,11 +104,15 @@ def main(argv=None):
                                          int(cfg.min_slide_s * g.sample_rate), rng)
             start = time.perf_counter()
             r, s, _, scale = search.maxima(offsets, args.floor)
+            t_search += time.perf_counter() - start
+            middle = time.perf_counter()
+            coarse = search.coarse_map((g.lag_samples + offsets) % snr.shape[1])
+            t_screen += time.perf_counter() - middle
+            adds += np.count_nonzero(search.coarse_weights) * coarse.shape[1]
             middle = time.perf_counter()
             z, _ = coherent_map(snr, g, rows, beam, sigma, live, offsets, with_flux=False,
                                 finite=True, dtype=np.float32)
             fr, fs = local_maxima(z, args.floor * scale, window)
-            t_search += middle - start
             t_full += time.perf_counter() - middle
             mine, full = set(zip(r.tolist(), s.tolist())), set(zip(fr.tolist(), fs.tolist()))
             lost = sorted(full - mine)
@@ -113,6 +130,35 @@ def main(argv=None):
           f"missed by the search: {missed}; added: {added}")
     print(f"per slide of a scan: full map {1e3 * t_full / n:.1f} ms, search "
           f"{1e3 * t_search / n:.1f} ms ({t_full / t_search:.1f}x faster)")
+    rate = in_cache_rate(search.phases.shape[2])
+    bound = adds / rate
+    print(f"per slide of the observation: search {t_search / args.slides:.3f} s, its screen "
+          f"{t_screen / args.slides:.3f} s ({adds / args.slides / 1e6:.0f} M multiply-adds, "
+          f"{adds / t_screen / 1e9:.1f} G/s; in cache {rate / 1e9:.1f} G/s: "
+          f"{bound / args.slides:.3f} s)")
+    print(f"100 slides against the FFT floor ({floor_s:.2f} s): search "
+          f"{100 * t_search / args.slides / floor_s:.2f}x, screen "
+          f"{100 * t_screen / args.slides / floor_s:.2f}x, the screen's multiply-adds at "
+          f"the in-cache rate {100 * bound / args.slides / floor_s:.2f}x")
+
+
+def in_cache_rate(ncol, nrow=23, repeats=200):
+    """Multiply-adds per second of the screen's sum (int16 samples into float32 rows,
+    :func:`so_transients.coherent.add_slice`) with all its data in cache: ``nrow`` rows of
+    ``ncol``, added to ``repeats`` times."""
+    acc = np.zeros((nrow, ncol), np.float32)
+    src = np.ones((nrow, ncol + 8), np.int16)
+    _add_rows(acc, src, 1)
+    start = time.perf_counter()
+    _add_rows(acc, src, repeats)
+    return nrow * ncol * repeats / (time.perf_counter() - start)
+
+
+@njit
+def _add_rows(acc, src, repeats):
+    for _ in range(repeats):
+        for r in range(acc.shape[0]):
+            add_slice(acc[r], src[r], np.float32(0.5), 0, acc.shape[1], 3)
     return 0
 
 

@@ -189,14 +189,15 @@ def largest_share(snr, geometry: CrossingGeometry, rows, beam_sigma, sigma_amp, 
     positive). ``sign=-1``: of the sign-inverted ``snr``'s map."""
     weights, _ = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
     shifts = geometry.lag_samples + (0 if offsets is None else np.asarray(offsets, np.int64))
-    total, best = point_sums(snr, weights, *row_members(weights), shifts, peak_rows,
-                             peak_samples, sign)
-    return share_of(total, best)
+    return term_shares(snr, weights, row_members(weights), shifts, peak_rows, peak_samples,
+                       sign)
 
 
-def share_of(total, best):
-    """The largest term's share ``best / total`` of each position's sum (1 where the sum is
-    not positive)."""
+def term_shares(snr, weights, members, shifts, rows, samples, sign=1.0):
+    """The largest term's share ``best / total`` of each position's sum, from
+    :func:`point_sums` (``members``: its ``(indptr, members)``), 1 where the sum is not
+    positive."""
+    total, best = point_sums(snr, weights, *members, shifts, rows, samples, sign)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(total > 0, best / total, 1.0)
 
@@ -278,6 +279,26 @@ def is_top(z, r, t, half):
             if z[rr, tt] > v:
                 return False
     return True
+
+
+def window_max(z, rows, samples, half_rows, half_samples):
+    """The highest finite value of ``z`` within ``half_rows`` rows and ``half_samples``
+    samples of each position (``rows``, ``samples``) (-inf where there is none)."""
+    out = np.full(len(rows), -np.inf)
+    _window_max(np.ascontiguousarray(z), np.asarray(rows, np.int64),
+                np.asarray(samples, np.int64), int(half_rows), int(half_samples), out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _window_max(z, rows, samples, half_rows, half_samples, out):
+    nrow, nsamp = z.shape
+    for k in range(len(rows)):
+        r, t = rows[k], samples[k]
+        for rr in range(max(r - half_rows, 0), min(r + half_rows + 1, nrow)):
+            for tt in range(max(t - half_samples, 0), min(t + half_samples + 1, nsamp)):
+                if z[rr, tt] > out[k]:          # False for NaN
+                    out[k] = z[rr, tt]
 
 
 def time_slide_offsets(ndet, nsamp, min_shift, rng):

@@ -2,25 +2,32 @@
 
 A time slide's map is the background of ``far`` only where it is high: its local maxima at
 least the slide floor. :class:`SlideSearch` finds them without summing the whole map. It
-first sums a coarse map, every other row and every ``step``-th sample (``step``: one beam
-crossing time), whose values are the full map's own at those positions, for about
-``1 / (2 step)`` of the full sum's cost. Around each coarse position at least
-:data:`REFINE` x the threshold it then sums the full map, one row and ``step`` samples
-either side (the core) and, for the local-maximum test, the neighbourhood of the core; the
-maxima are those of the core.
+first sums a coarse map (the screen), every other row and every ``step``-th sample
+(``step``: one beam crossing time), for about ``1 / (2 step)`` of the full sum's
+multiply-adds, and fewer again: each row sums only the detectors within
+:data:`SCREEN_REACH` beam sigmas (99.8 % of its weight^2; the map's rows reach 3, a third
+more detectors), read as 16-bit integers in units of :data:`QUANTUM` (S/N to 0.002, half
+the bytes of float32; a spike beyond S/N 128 is clipped). A screen value is the full
+map's at its position to about 0.06 in Z. Around each coarse position at least
+:data:`REFINE` x the threshold it then sums the full map (exactly, as
+:func:`so_transients.coherent.coherent_map`), one row and ``step`` samples either side
+(the core) and, for the local-maximum test, the neighbourhood of the core; the maxima are
+those of the core, at the full map's values.
 
 A maximum at least the threshold is missed only when every coarse position within one row
 and ``step`` samples of it is below ``REFINE`` x the threshold. Z's response to a source and
 the filtered noise's peaks alike are about a beam wide across and a beam crossing time
 along (times sqrt(2)): the nearest coarse position, at most one row (0.8 beam sigma) and
-half a crossing time away, keeps 80-85 % of a peak, and :data:`REFINE` = 0.7 leaves room
-for the noise's own irregularity. The refining threshold is fixed, so a maximum of height
-``Z`` is missed only when every such coarse position is below ``REFINE x floor / Z`` of it:
-misses gather just above the floor (on the 20-minute benchmark scans, 2 of 263 maxima from
-Z = 4.5, at 4.55 and 4.59), and a maximum at a false-alarm budget's Z of 6-7 would need a
-drop to half its height. ``tests/test_slide_maxima.py`` checks the maxima against the full
-map's on filtered noise, and ``benchmarks/slide_search.py`` on a simulated observation. Where much of the map would need refining (a threshold near the
-noise), the full map is summed instead.
+half a crossing time away, keeps 80-85 % of a peak, and :data:`REFINE` = 0.75 leaves room
+for the noise's own irregularity and the screen's 0.06. The refining threshold is fixed,
+so a maximum of height ``Z`` is missed only when every such coarse position is below
+``REFINE x floor / Z`` of it: misses gather just above the floor (on the 20-minute
+benchmark scans, 1 of 953 maxima from Z = 4.5, at 4.59, one detector's spike that the
+background leaves out anyway; at 0.7, none, for 1.3x the cost of a slide), and a maximum
+at a false-alarm budget's Z of 6-7 would need a drop to half its height.
+``tests/test_slide_maxima.py`` checks the maxima against the full map's on filtered
+noise, and ``benchmarks/slide_search.py`` on a simulated observation. Where much of the
+map would need refining (a threshold near the noise), the full map is summed instead.
 """
 from __future__ import annotations
 
@@ -28,10 +35,14 @@ import numpy as np
 from numba import njit
 
 from .coherent import (add_slice, coherent_map, is_top, local_maxima, measured_scale,
-                       point_sums, row_members, row_weights, share_of)
+                       row_members, row_weights, term_shares)
 
 #: Coarse positions at least this share of the threshold are refined.
-REFINE = 0.7
+REFINE = 0.75
+#: The screen's rows sum the detectors within this many beam sigmas (the map's: 3).
+SCREEN_REACH = 2.0
+#: The screen reads each detector's S/N as 16-bit integers in this unit.
+QUANTUM = 2.0**-8
 #: Beyond this share of the map to refine, the whole map is summed instead: a refined
 #: position's detector samples are read from scattered addresses, 50-70x the cost of a
 #: position of the whole map's streamed sum (measured on the 20-minute benchmark scans).
@@ -56,7 +67,9 @@ class SlideSearch:
         self.step = geometry.crossing_samples(beam_sigma)
         self.scale = None          # the slides' measured spread (unnormalized Z)
         self.phases = sample_phases(snr, self.step)
-        self.coarse_weights = np.ascontiguousarray(self.weights[::2], np.float32)
+        screen, norm = row_weights(geometry, rows, beam_sigma, sigma_amp, live, SCREEN_REACH)
+        self.coarse_weights = np.ascontiguousarray(screen[::2] * QUANTUM, np.float32)
+        self.coarse_norm = norm[::2].astype(np.float32)
         self.coarse_used = np.flatnonzero(np.any(self.coarse_weights != 0, axis=0))
 
     def maxima(self, offsets, floor):
@@ -64,9 +77,10 @@ class SlideSearch:
         (unnormalized Z, as :func:`so_transients.coherent.coherent_map`'s, float32 sums) at
         least ``floor`` x ``scale`` in a neighbourhood of one row and ``window`` samples
         either side, and ``scale``, the slides' measured spread (robust standard deviation
-        of the first slide's whole coarse map: the slides of a scan differ only in which
-        noise samples line up, so their spread is the scan's, and one measurement of
-        ~10^5 values, to about 0.5 %, sets every slide's threshold alike)."""
+        of the first slide's whole screen, within 0.2 % of the map's: the slides of a
+        scan differ only in which noise samples line up, so their spread is the scan's,
+        and one measurement of ~10^5 values, to about 0.5 %, sets every slide's
+        threshold alike)."""
         nsamp = self.snr.shape[1]
         shifts = (self.geometry.lag_samples + np.asarray(offsets, np.int64)) % nsamp
         coarse = self.coarse_map(shifts)
@@ -91,28 +105,31 @@ class SlideSearch:
         """:func:`so_transients.coherent.largest_share` of the slide ``offsets``'s map at
         (``rows``, ``samples``)."""
         shifts = self.geometry.lag_samples + np.asarray(offsets, np.int64)
-        total, best = point_sums(self.snr, self.weights, self.indptr, self.members, shifts,
-                                 rows, samples)
-        return share_of(total, best)
+        return term_shares(self.snr, self.weights, (self.indptr, self.members), shifts, rows,
+                           samples)
 
     def coarse_map(self, shifts):
-        """Z on every other row and every ``step``-th sample (both from 0), from the
-        detectors' cyclic ``shifts`` (samples, in [0, nsamp))."""
+        """The screen: Z on every other row and every ``step``-th sample (both from 0),
+        from the detectors' cyclic ``shifts`` (samples, in [0, nsamp))."""
         acc = np.zeros((len(self.coarse_weights), self.phases.shape[2]), np.float32)
         _coarse_shift_add(self.phases, self.snr.shape[1], self.coarse_weights,
                           self.coarse_used, shifts, acc)
         with np.errstate(invalid="ignore", divide="ignore"):
-            return acc / self.norm32[::2, None]
+            return acc / self.coarse_norm[:, None]
 
 
+@njit(cache=True, nogil=True)
 def sample_phases(snr, step):
-    """``(step, ndet, ceil(nsamp / step))``: ``out[p, d, j] = snr[d, j * step + p]`` (0
-    past the end), so that every ``step``-th sample from any start is contiguous."""
+    """``(step, ndet, ceil(nsamp / step))`` int16: ``out[p, d, j] = snr[d, j * step + p] /
+    QUANTUM`` rounded (0 past the end), so that every ``step``-th sample from any start is
+    contiguous; beyond +-32767 (S/N 128) clipped."""
     ndet, nsamp = snr.shape
-    out = np.zeros((step, ndet, -(-nsamp // step)), np.float32)
-    for p in range(step):
-        part = snr[:, p::step]
-        out[p, :, :part.shape[1]] = part
+    out = np.zeros((step, ndet, -(-nsamp // step)), np.int16)
+    for d in range(ndet):
+        for j in range(out.shape[2]):
+            for p in range(min(step, nsamp - j * step)):
+                v = snr[d, j * step + p] * (1.0 / QUANTUM)
+                out[p, d, j] = np.rint(min(max(v, -32767.0), 32767.0))
     return out
 
 

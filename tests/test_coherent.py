@@ -155,3 +155,18 @@ def test_a_bright_source_does_not_leak_into_its_own_background():
     # noise alone: none expected at Z >= 7 in 10 slides of 30 s; allow a few from the source
     assert n_quiet <= 2 and n_loud <= n_quiet + 5, (n_quiet, n_loud)
     assert np.nanmax(loud.z) > 100                       # the source itself is there
+
+
+def test_window_max_is_the_maximum_filter_at_the_positions():
+    """As ``scipy.ndimage.maximum_filter`` (NaN as -inf, edges clipped) read at the given
+    positions."""
+    from scipy import ndimage
+    from so_transients.coherent import window_max
+    rng = np.random.default_rng(4)
+    z = rng.normal(size=(9, 300))
+    z[:, :7] = np.nan
+    z[3, 100:140] = np.nan
+    rows, samples = rng.integers(0, 9, 50), rng.integers(0, 300, 50)
+    rows[:2], samples[:2] = [0, 8], [0, 299]
+    full = ndimage.maximum_filter(np.nan_to_num(z, nan=-np.inf), size=(5, 41), mode="nearest")
+    assert np.array_equal(window_max(z, rows, samples, 2, 20), full[rows, samples])

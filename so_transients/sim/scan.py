@@ -62,7 +62,7 @@ def boresight(t_rel, pattern: ScanPattern):
     azimuth, odd sweeps down.
     """
     t_rel = np.asarray(t_rel, dtype=np.float64)
-    v, a, tc, tt = pattern.az_speed, pattern.accel, pattern.cv_time, pattern.turnaround_time
+    v, a, tc = pattern.az_speed, pattern.accel, pattern.cv_time
     sweep = np.floor(t_rel / pattern.sweep_time).astype(np.int64)
     tau = t_rel - sweep * pattern.sweep_time
     direction = np.where(sweep % 2 == 0, 1.0, -1.0)

@@ -1,7 +1,7 @@
 """Benchmark: the coarse-to-fine search of time slides' maxima against the full maps.
 
     python benchmarks/slide_search.py                        # 20 minutes of w16 at f090
-    python benchmarks/slide_search.py --context data/bench_sim/context.yaml --slides 10
+    python benchmarks/slide_search.py --context path/to/context.yaml --slides 10
     python benchmarks/slide_search.py --floor 3.5            # more maxima to compare
 
 Loads (or simulates, as ``bench_chain.py`` does: atmosphere, CMB, flares, glitches) one

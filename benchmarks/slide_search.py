@@ -16,9 +16,9 @@ wafer-band from the floor.
 
 It also prints what bounds a slide's cost: the screen (the coarse map every slide sums)
 against its multiply-adds at the rate the same sum reaches with all its data in cache
-(:func:`in_cache_rate`; the screen reads its samples at a fraction of the memory's
-bandwidth, so arithmetic, not memory, bounds it), and both for 100 slides (the default)
-against the observation's FFT floor (``bench_chain.py``'s, measured in the same run).
+(:func:`in_cache_rate`: what the sum could reach at best, however its reads were
+arranged), and both for 100 slides (the default) against the observation's FFT floor
+(``bench_chain.py``'s, measured in the same run).
 """
 import argparse
 import logging
@@ -140,6 +140,7 @@ def main(argv=None):
           f"{100 * t_search / args.slides / floor_s:.2f}x, screen "
           f"{100 * t_screen / args.slides / floor_s:.2f}x, the screen's multiply-adds at "
           f"the in-cache rate {100 * bound / args.slides / floor_s:.2f}x")
+    return 0
 
 
 def in_cache_rate(ncol, nrow=23, repeats=200):
@@ -159,7 +160,6 @@ def _add_rows(acc, src, repeats):
     for _ in range(repeats):
         for r in range(acc.shape[0]):
             add_slice(acc[r], src[r], np.float32(0.5), 0, acc.shape[1], 3)
-    return 0
 
 
 if __name__ == "__main__":

@@ -100,7 +100,7 @@ def coherent_map(snr, geometry: CrossingGeometry, rows, beam_sigma, sigma_amp, l
     (a time slide, applied cyclically). ``with_flux=False``: Z only (``flux`` is None);
     ``finite``: ``snr`` is known to hold no NaN (a caller making many maps of it cleans it
     once, :func:`finite_snr`); ``dtype``: of the sums (float32 for the many maps of a
-    background: 1.6x faster, Z to 1e-6)."""
+    background: 1.6-3x faster, Z to 1e-6)."""
     snr = np.asarray(snr) if finite else finite_snr(snr)   # NaN samples add nothing
     nsamp = snr.shape[1]
     weights, norm = row_weights(geometry, rows, beam_sigma, sigma_amp, live)

@@ -5,8 +5,9 @@ least the slide floor. :class:`SlideSearch` finds them without summing the whole
 first sums a coarse map (the screen), every other row and every ``step``-th sample
 (``step``: one beam crossing time), for about ``1 / (2 step)`` of the full sum's
 multiply-adds, and fewer again: each row sums only the detectors within
-:data:`SCREEN_REACH` beam sigmas (99.8 % of its weight^2; the map's rows reach 3, a third
-more detectors), read as 16-bit integers in units of :data:`QUANTUM` (S/N to 0.002, half
+:data:`SCREEN_REACH` beam sigmas (99.6 % of its weight^2; the map's rows reach 3, half
+as many detectors again; a row that would keep less than :data:`SCREEN_KEEP` of it, beside
+dead detectors, sums as far as the map's), read as 16-bit integers in units of :data:`QUANTUM` (S/N to 0.002, half
 the bytes of float32; a spike beyond S/N 128 is clipped). A screen value is the full
 map's at its position to about 0.06 in Z. Around each coarse position at least
 :data:`REFINE` x the threshold it then sums the full map (exactly, as
@@ -39,8 +40,10 @@ from .coherent import (add_slice, coherent_map, is_top, local_maxima, measured_s
 
 #: Coarse positions at least this share of the threshold are refined.
 REFINE = 0.75
-#: The screen's rows sum the detectors within this many beam sigmas (the map's: 3).
+#: The screen's rows sum the detectors within this many beam sigmas (the map's: 3)...
 SCREEN_REACH = 2.0
+#: ... unless that keeps less than this share of the row's weight^2.
+SCREEN_KEEP = 0.9
 #: The screen reads each detector's S/N as 16-bit integers in this unit.
 QUANTUM = 2.0**-8
 #: Beyond this share of the map to refine, the whole map is summed instead: a refined
@@ -68,6 +71,8 @@ class SlideSearch:
         self.scale = None          # the slides' measured spread (unnormalized Z)
         self.phases = sample_phases(snr, self.step)
         screen, norm = row_weights(geometry, rows, beam_sigma, sigma_amp, live, SCREEN_REACH)
+        short = norm**2 < SCREEN_KEEP * self.norm**2
+        screen[short], norm[short] = self.weights[short], self.norm[short]
         self.coarse_weights = np.ascontiguousarray(screen[::2] * QUANTUM, np.float32)
         self.coarse_norm = norm[::2].astype(np.float32)
         self.coarse_used = np.flatnonzero(np.any(self.coarse_weights != 0, axis=0))

@@ -166,7 +166,9 @@ def test_window_max_is_the_maximum_filter_at_the_positions():
     z = rng.normal(size=(9, 300))
     z[:, :7] = np.nan
     z[3, 100:140] = np.nan
+    z[:, 200:260] = np.nan                       # a window with nothing finite: -inf
     rows, samples = rng.integers(0, 9, 50), rng.integers(0, 300, 50)
-    rows[:2], samples[:2] = [0, 8], [0, 299]
+    rows[:3], samples[:3] = [0, 8, 4], [0, 299, 230]
     full = ndimage.maximum_filter(np.nan_to_num(z, nan=-np.inf), size=(5, 41), mode="nearest")
-    assert np.array_equal(window_max(z, rows, samples, 2, 20), full[rows, samples])
+    out = window_max(z, rows, samples, 2, 20)
+    assert np.array_equal(out, full[rows, samples]) and out[2] == -np.inf

@@ -86,8 +86,9 @@ def test_far_below_the_slides_floor_rests_on_the_inverted_data():
 
 def test_the_screen_is_the_maps_own_values_to_a_tenth_of_z():
     """The screen (16-bit samples, detectors within 2 beam sigmas) at its positions is the
-    full map's to the 0.06 in Z the module's doc states (tolerance 0.1), with the same
-    spread to 1 %."""
+    full map's to the 0.06 in Z the module's doc states: the left-out detectors carry 0.4 %
+    of a row's weight^2, so sqrt(0.004) = 0.063 of the spread, checked at 0.08 (the
+    spread of ~10^4 differences is known to a few %); the same spread to 1 %."""
     rng = np.random.default_rng(13)
     geometry, sigma = wafer(rng=rng)
     live = np.ones(len(sigma), bool)
@@ -99,7 +100,7 @@ def test_the_screen_is_the_maps_own_values_to_a_tenth_of_z():
     screen = search.coarse_map((geometry.lag_samples + offsets) % NSAMP)
     _, full = full_maxima(snr, geometry, rows, sigma, live, offsets, np.inf, window)
     at = full[::2, ::search.step]
-    assert np.std(screen - at) < 0.1 * measured_scale(at)
+    assert np.std(screen - at) < 0.08 * measured_scale(at)
     assert measured_scale(screen) == pytest.approx(measured_scale(at), rel=0.01)
 
 
@@ -112,3 +113,23 @@ def test_sample_phases_rounds_to_the_quantum_and_clips_beyond_it():
     assert values[0, 3] == pytest.approx(128.0, abs=0.01)       # clipped
     assert values[0, 4] == pytest.approx(-128.0, abs=0.01)
     assert phases[1, 0, 2] == 0 and phases[2, 0, 2] == 0        # past the end
+
+
+def test_a_row_the_screens_reach_leaves_empty_sums_as_far_as_the_maps():
+    """Detectors dead within 2 beam sigmas of a screen row: that row sums the live ones
+    2-3 sigmas away, as the map does, instead of nothing (a NaN row never refined)."""
+    rng = np.random.default_rng(14)
+    geometry, sigma = wafer(rng=rng)
+    rows = row_offsets(geometry, SIGMA_BEAM, ROW_STEP)
+    row = rows[2 * (len(rows) // 4)]                      # a screen (even) row
+    live = np.abs(geometry.across - row) > 2.05 * SIGMA_BEAM
+    assert (np.abs(geometry.across[live] - row) < 3 * SIGMA_BEAM).any()
+    window = geometry.crossing_samples(SIGMA_BEAM)
+    snr = filtered_noise(len(sigma), rng, window)
+    search = SlideSearch(snr, geometry, rows, SIGMA_BEAM, sigma, live, window)
+    offsets = time_slide_offsets(len(sigma), NSAMP, 400, rng)
+    screen = search.coarse_map((geometry.lag_samples + offsets) % NSAMP)
+    _, full = full_maxima(snr, geometry, rows, sigma, live, offsets, np.inf, window)
+    k = len(rows) // 4
+    assert np.isfinite(screen[k]).all()
+    assert np.allclose(screen[k], full[2 * k, ::search.step], atol=0.02)

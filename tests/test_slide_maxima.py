@@ -57,14 +57,30 @@ def test_the_search_finds_every_maximum_of_the_full_map(floor):
     assert found > (0 if floor > 4 else 40)      # the comparison is not empty
 
 
-def test_a_slides_largest_share_is_the_maps():
-    rng = np.random.default_rng(12)
+def noise_search(seed, live_of=None):
+    """A :class:`SlideSearch` of filtered noise on the test wafer, and what it was made
+    from: ``(rng, snr, geometry, rows, sigma, live, search)``; ``live_of(geometry, rows)``:
+    the live detectors (default all)."""
+    rng = np.random.default_rng(seed)
     geometry, sigma = wafer(rng=rng)
-    live = np.ones(len(sigma), bool)
+    rows = row_offsets(geometry, SIGMA_BEAM, ROW_STEP)
+    live = np.ones(len(sigma), bool) if live_of is None else live_of(geometry, rows)
     window = geometry.crossing_samples(SIGMA_BEAM)
     snr = filtered_noise(len(sigma), rng, window)
-    rows = row_offsets(geometry, SIGMA_BEAM, ROW_STEP)
     search = SlideSearch(snr, geometry, rows, SIGMA_BEAM, sigma, live, window)
+    return rng, snr, geometry, rows, sigma, live, search
+
+
+def screen_and_map(rng, snr, geometry, rows, sigma, live, search):
+    """A slide's screen and its full map at the screen's positions."""
+    offsets = time_slide_offsets(len(sigma), NSAMP, 400, rng)
+    screen = search.coarse_map((geometry.lag_samples + offsets) % NSAMP)
+    _, full = full_maxima(snr, geometry, rows, sigma, live, offsets, np.inf, search.window)
+    return screen, full[::2, ::search.step]
+
+
+def test_a_slides_largest_share_is_the_maps():
+    rng, snr, geometry, rows, sigma, live, search = noise_search(12)
     offsets = time_slide_offsets(len(sigma), NSAMP, 400, rng)
     r, s, _, _ = search.maxima(offsets, 3.0)
     assert len(r)
@@ -89,17 +105,7 @@ def test_the_screen_is_the_maps_own_values_to_a_tenth_of_z():
     full map's to the 0.06 in Z the module's doc states: the left-out detectors carry 0.4 %
     of a row's weight^2, so sqrt(0.004) = 0.063 of the spread, checked at 0.08 (the
     spread of ~10^4 differences is known to a few %); the same spread to 1 %."""
-    rng = np.random.default_rng(13)
-    geometry, sigma = wafer(rng=rng)
-    live = np.ones(len(sigma), bool)
-    window = geometry.crossing_samples(SIGMA_BEAM)
-    snr = filtered_noise(len(sigma), rng, window)
-    rows = row_offsets(geometry, SIGMA_BEAM, ROW_STEP)
-    search = SlideSearch(snr, geometry, rows, SIGMA_BEAM, sigma, live, window)
-    offsets = time_slide_offsets(len(sigma), NSAMP, 400, rng)
-    screen = search.coarse_map((geometry.lag_samples + offsets) % NSAMP)
-    _, full = full_maxima(snr, geometry, rows, sigma, live, offsets, np.inf, window)
-    at = full[::2, ::search.step]
+    screen, at = screen_and_map(*noise_search(13))
     assert np.std(screen - at) < 0.08 * measured_scale(at)
     assert measured_scale(screen) == pytest.approx(measured_scale(at), rel=0.01)
 
@@ -118,18 +124,13 @@ def test_sample_phases_rounds_to_the_quantum_and_clips_beyond_it():
 def test_a_row_the_screens_reach_leaves_empty_sums_as_far_as_the_maps():
     """Detectors dead within 2 beam sigmas of a screen row: that row sums the live ones
     2-3 sigmas away, as the map does, instead of nothing (a NaN row never refined)."""
-    rng = np.random.default_rng(14)
-    geometry, sigma = wafer(rng=rng)
-    rows = row_offsets(geometry, SIGMA_BEAM, ROW_STEP)
-    row = rows[2 * (len(rows) // 4)]                      # a screen (even) row
-    live = np.abs(geometry.across - row) > 2.05 * SIGMA_BEAM
-    assert (np.abs(geometry.across[live] - row) < 3 * SIGMA_BEAM).any()
-    window = geometry.crossing_samples(SIGMA_BEAM)
-    snr = filtered_noise(len(sigma), rng, window)
-    search = SlideSearch(snr, geometry, rows, SIGMA_BEAM, sigma, live, window)
-    offsets = time_slide_offsets(len(sigma), NSAMP, 400, rng)
-    screen = search.coarse_map((geometry.lag_samples + offsets) % NSAMP)
-    _, full = full_maxima(snr, geometry, rows, sigma, live, offsets, np.inf, window)
+    def dead_near_row(geometry, rows):       # screen row len(rows) // 4: map row twice it
+        return np.abs(geometry.across - rows[2 * (len(rows) // 4)]) > 2.05 * SIGMA_BEAM
+
+    made = noise_search(14, dead_near_row)
+    _, _, geometry, rows, _, live, _ = made
     k = len(rows) // 4
+    assert (np.abs(geometry.across[live] - rows[2 * k]) < 3 * SIGMA_BEAM).any()
+    screen, at = screen_and_map(*made)
     assert np.isfinite(screen[k]).all()
-    assert np.allclose(screen[k], full[2 * k, ::search.step], atol=0.02)
+    assert np.allclose(screen[k], at[k], atol=0.02)

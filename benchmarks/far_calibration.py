@@ -36,7 +36,7 @@ import so_transients  # noqa: E402,F401  registers the steps and the loader
 from so_transients import pointing  # noqa: E402
 from so_transients.coherent import (false_alarm_rate, local_maxima,  # noqa: E402
                                     measured_scale, row_weights)
-from so_transients.coherent_find import vetoed  # noqa: E402
+from so_transients.coherent_peaks import vetoed  # noqa: E402
 from so_transients.find import FindConfig, group_scans  # noqa: E402
 from so_transients.scan_geometry import sample_rate  # noqa: E402
 from so_transients.significance import (SignificanceConfig, inverted_rate,  # noqa: E402

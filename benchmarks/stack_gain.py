@@ -12,10 +12,15 @@ flux, the flares with a candidate within 1' whose ``far`` is within ``--budget``
 wafer-band-hour; the paper's rate by default): by single crossings alone, and with stacks.
 Candidates within the budget that match no flare are the false ones. Prints a table.
 
-``--noise-only K`` checks the stacks' ``far`` instead: K observations without flares, and
-the number of stacked candidates (passing the cuts) with ``far <= x`` against ``x`` times
-the hours searched, for a few ``x`` (stacks exist only from ``coherent_threshold`` up, so
-the count stops growing at the ``far`` of Z = 4.5).
+``--noise-only K`` checks the stacks' background instead, on K observations without flares:
+is a stack of the sign-inverted maps (``transient_significance``'s background of stacked
+candidates) as likely as a stack of the data? It counts, over the same hours, the data's
+stacked candidates (and those passing the cuts) and the inverted maps' stacks of each
+observation (as the step computes them, with its defaults) at Z >= z; then gives every data
+stack its ``far`` from the inverted stacks of all K observations pooled and from its own
+observation's alone (the step's ``far``), and counts those with ``far <= x`` against ``x``
+times the hours searched (stacks exist only from ``coherent_threshold`` up, so the count
+stops growing at the ``far`` of that Z, printed).
 """
 import argparse
 import logging
@@ -32,8 +37,12 @@ from sotodlib import core  # noqa: E402
 from sotodlib.preprocess import Pipeline  # noqa: E402
 
 import so_transients  # noqa: E402,F401  registers the steps and the loader
-from so_transients import candidates  # noqa: E402
+from so_transients import candidates, pointing  # noqa: E402
 from so_transients.angles import ARCMIN, sky_separation  # noqa: E402
+from so_transients.find import SCAN_FIELD, FindConfig  # noqa: E402
+from so_transients.scan_geometry import sample_rate  # noqa: E402
+from so_transients.significance import (Background, SignificanceConfig,  # noqa: E402
+                                        band_background)
 from so_transients.site import TEMPLATE, apply_overrides  # noqa: E402
 from so_transients.sim.config import SimConfig  # noqa: E402
 from so_transients.sim.simulate import simulate  # noqa: E402
@@ -53,7 +62,7 @@ def pipe(window):
 
 def search(flux, args, tmp, seed=None, n=None):
     """Candidates of one simulated observation with ``n`` (default ``args.n``) flares of peak
-    ``flux``, and the flares' truth."""
+    ``flux``, the flares' truth and the searched group."""
     sim = simulate(SimConfig.from_dict({
         "output": tmp, "seed": args.seed + int(flux) if seed is None else seed,
         "observation": {"duration": 60.0 * args.minutes},
@@ -64,7 +73,8 @@ def search(flux, args, tmp, seed=None, n=None):
     ctx = core.Context(str(sim.context))
     aman = ctx.get_obs(sim.obs_ids[0], dets={"wafer_slot": "w16", "bandpass": "f090"})
     Pipeline(pipe(args.window), logger=logging.getLogger("stack_gain")).run(aman)
-    return candidates.from_aman(aman.transient_candidates, candidates.CAND_AXIS), sim.flares
+    return (candidates.from_aman(aman.transient_candidates, candidates.CAND_AXIS), sim.flares,
+            aman)
 
 
 def count(cands, flares, budget, stacks):
@@ -80,21 +90,54 @@ def count(cands, flares, budget, stacks):
     return int(np.sum(np.any(near[within], axis=0))), int(np.sum(within & ~near.any(axis=1)))
 
 
+def inverted_stacks(aman, window):
+    """``(z, hours)``: the sign-inverted maps' stacks of a searched group and the time
+    searched, as ``transient_significance`` computes them (its defaults; no slides)."""
+    f = aman.transient_filter
+    dets = np.flatnonzero(~np.asarray(f.dead, bool))
+    t = np.asarray(aman.timestamps)
+    xi, eta = np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta)
+    background, _ = band_background(
+        aman.transient_snr, dets, t, pointing.boresight_q(aman), xi[dets], eta[dets],
+        np.asarray(aman[SCAN_FIELD]), np.asarray(f.sigma_amp)[dets],
+        float(np.median(np.asarray(f.beam_sigma)[dets])), sample_rate(t),
+        SignificanceConfig(n_slides=0),
+        stacking=FindConfig(mode="coherent", stack_window=window).stacking)
+    return background.stacks, background.data_hours
+
+
 def noise_only(args):
-    """The stacks' far on ``args.noise_only`` observations without flares."""
-    far, hours = [], 0.0
+    """The stacks' background on ``args.noise_only`` observations without flares."""
+    z, passed, own_far, inverted, hours = [], [], [], [], 0.0
     for k in range(args.noise_only):
         with tempfile.TemporaryDirectory() as tmp:
-            cands, _ = search(0.0, args, tmp, seed=args.seed + 1000 + k, n=0)
-        stacked = (cands["n_crossings"] > 1) & np.asarray(cands["passed"], bool)
-        far.extend(np.asarray(cands["far"], float)[stacked])
-        hours += args.minutes / 60
-        print(f"observation {k}: {stacked.sum()} stacks", flush=True)
-    far = np.asarray(far)
-    print(f"\n{'x (1/h)':>9}{'stacks with far <= x':>22}{'x T':>8}")
-    for x in (0.1, 0.3, 1.0, 3.0, 10.0, 30.0):
-        print(f"{x:>9g}{int(np.sum(far <= x)):>22d}{x * hours:>8.2f}")
-    print(f"\n{hours:g} h of w16 at f090 without flares; stack_window {args.window:g} s.")
+            cands, _, aman = search(0.0, args, tmp, seed=args.seed + 1000 + k, n=0)
+            stacks, h = inverted_stacks(aman, args.window)
+        stacked = cands["n_crossings"] > 1
+        z.extend(np.asarray(cands["coherent_snr"], float)[stacked])
+        passed.extend(np.asarray(cands["passed"], bool)[stacked])
+        own_far.extend(np.asarray(cands["far"], float)[stacked])
+        inverted.extend(stacks)
+        hours += h
+        print(f"observation {k}: {stacked.sum()} stacks, {len(stacks)} inverted stacks from "
+              f"Z = 3 in {h:.3f} h", flush=True)
+    z, passed, inverted = np.asarray(z), np.asarray(passed), np.asarray(inverted)
+    print(f"\n{'Z >=':>6}{'data stacks':>13}{'passing cuts':>14}{'inverted stacks':>17}"
+          f"{'pull':>7}")
+    for level in (4.5, 5.0, 5.5, 6.0):
+        n, m = int(np.sum(z >= level)), int(np.sum(inverted >= level))
+        pull = (n - m) / np.sqrt(n + m) if n + m else 0.0
+        print(f"{level:>6.1f}{n:>13d}{int(np.sum(passed & (z >= level))):>14d}{m:>17d}"
+              f"{pull:>7.1f}")
+    pooled = Background(np.zeros(0), 0.0, np.zeros(0), hours, stacks=inverted)
+    far = pooled.stack_far(z)
+    print(f"\n{'x (1/h)':>9}{'far <= x (pooled)':>19}{'(the step)':>12}{'x T':>8}")
+    for x in (0.3, 1.0, 3.0, 10.0, 30.0):
+        print(f"{x:>9g}{int(np.sum(far <= x)):>19d}{int(np.sum(np.asarray(own_far) <= x)):>12d}"
+              f"{x * hours:>8.2f}")
+    print(f"\n{hours:.2f} h searched of w16 at f090 without flares; stack_window "
+          f"{args.window:g} s. Pooled, a stack at Z = 4.5 (the threshold) has far "
+          f"{pooled.stack_far(4.5)[0]:.2g} per wafer-band-hour: the counts stop growing there.")
     return 0
 
 
@@ -119,7 +162,7 @@ def main(argv=None):
     for flux in args.flux:
         start = time.perf_counter()
         with tempfile.TemporaryDirectory() as tmp:
-            cands, flares = search(flux, args, tmp)
+            cands, flares, _ = search(flux, args, tmp)
         single, false_single = count(cands, flares, args.budget, stacks=False)
         both, false_both = count(cands, flares, args.budget, stacks=True)
         print(f"{flux:>10.0f}{len(flares):>8d}{single:>8d}{both:>9d}{false_single:>14d}"

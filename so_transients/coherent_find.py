@@ -10,15 +10,9 @@ measured spread (residual atmosphere correlates detectors, so it is not 1); its 
 at least ``coherent_threshold`` become candidates, the strongest of any that lie within two
 beam sigmas across and three beam-crossing times along of each other.
 
-Two vetoes remove what is not a source crossing before the cuts see it:
-
-- ``max_single_share``: one detector makes more than this share of the maximum's sum (a
-  glitch or cosmic ray on one detector);
-- ``max_instant_share``: more than this share of its positive sum comes from detectors the
-  position crosses within four beam-crossing times (beam sigma / drift speed: the width of
-  the filtered response to a glitch) of each other, i.e. from one instant (a
-  glitch or readout jump on many detectors at once; a source's sum is spread over the whole
-  crossing).
+Two glitch vetoes (:mod:`so_transients.coherent_peaks`) remove what is not a source
+crossing before the cuts see it: one detector making more than ``max_single_share`` of a
+maximum's sum, or detectors crossed at one instant more than ``max_instant_share`` of it.
 
 A candidate's hits (``transient_hits``) are the samples the sum used: each detector within
 ``hit_reach`` beam sigmas across, at the sample the position crosses it. The cuts and the
@@ -38,74 +32,14 @@ import logging
 import numpy as np
 
 from . import candidates, pointing
-from .coherent import coherent_map, local_maxima, measured_scale, row_offsets, row_weights
+from .coherent import coherent_map, measured_scale, row_offsets, row_weights
+from .coherent_peaks import peaks, sum_terms
 from .find import CLUSTER_FIELDS, as_arrays, band_part, merge_bands
 from .scan_geometry import sample_rate as rate_of
 from .significance import scan_geometry
 from .sweep_stack import ScanMap, sky_position, stack_seeds
 
 log = logging.getLogger(__name__)
-
-#: "One instant": within this many beam-crossing times (beam sigma / drift speed), the width
-#: of the matched filter's response to a glitch, which the filter gives the template's shape.
-INSTANT = 4
-
-
-def suppress_neighbours(z_peaks, rows, samples, row_reach, time_reach):
-    """Indices (strongest first) of the maxima not within ``row_reach`` rows and
-    ``time_reach`` samples of a stronger one kept."""
-    kept = []
-    for k in np.argsort(-np.asarray(z_peaks), kind="stable"):
-        if not any(abs(rows[k] - rows[j]) <= row_reach and abs(samples[k] - samples[j])
-                   <= time_reach for j in kept):
-            kept.append(k)
-    return np.asarray(kept, int)
-
-
-def shares(terms, lags, window):
-    """``(single, instant)``: the largest share one detector has of a maximum's sum (its
-    ``terms``), and the largest share of its positive sum from detectors crossed within
-    ``window`` samples of one instant (``lags``: when each is crossed); both 1 (vetoed)
-    without terms."""
-    if not len(terms):
-        return 1.0, 1.0
-    total = terms.sum()
-    single = terms.max() / total if total > 0 else 1.0
-    positive = np.clip(terms, 0.0, None)
-    if positive.sum() <= 0:
-        return single, 1.0
-    order = np.argsort(lags)
-    lag, pos = lags[order], np.cumsum(positive[order])
-    hi = np.searchsorted(lag, lag + window, side="right") - 1
-    lo = np.searchsorted(lag, lag, side="left")
-    strip = pos[hi] - np.r_[0.0, pos][lo]
-    return float(single), float(strip.max() / positive.sum())
-
-
-def sum_terms(snr, weights, lags, row, sample):
-    """``(dets, samples, terms)`` of the map position (``row`` index, ``sample`` in ``snr``):
-    the detectors with weight there, the samples it crosses them at (inside ``snr``) and
-    their weighted S/N, whose sum is the position's unnormalized Z."""
-    dets = np.flatnonzero(weights[row])
-    at = sample + lags[dets]
-    inside = (at >= 0) & (at < snr.shape[1])
-    dets, at = dets[inside], at[inside]
-    return dets, at, weights[row, dets] * np.nan_to_num(snr[dets, at])
-
-
-def vetoed(snr, geometry, weights, beam_sigma, peak_rows, peak_samples, cfg):
-    """For each map position (``peak_rows`` indices, ``peak_samples``), whether a glitch
-    veto removes it: one detector makes more than ``cfg.max_single_share`` of its sum, or
-    detectors crossed at one instant more than ``cfg.max_instant_share`` of it
-    (``weights``: the map's, :func:`so_transients.coherent.row_weights`)."""
-    lags = geometry.lag_samples
-    window = INSTANT * geometry.crossing_samples(beam_sigma)
-    out = np.zeros(len(peak_rows), bool)
-    for k, (r, t0) in enumerate(zip(peak_rows, peak_samples)):
-        dets, _, terms = sum_terms(snr, weights, lags, r, t0)
-        single, instant = shares(terms, lags[dets], window)
-        out[k] = single > cfg.max_single_share or instant > cfg.max_instant_share
-    return out
 
 
 def scan_map(snr, geometry, beam_sigma, sigma_amp, live, cfg, with_flux=True):
@@ -119,17 +53,6 @@ def scan_map(snr, geometry, beam_sigma, sigma_amp, live, cfg, with_flux=True):
     scale = measured_scale(z)
     weights, norm = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
     return rows, z / scale, flux, norm / scale, weights
-
-
-def peaks(snr, geometry, z, weights, beam_sigma, threshold, cfg):
-    """``(rows, samples)`` indices of the maxima of ``z`` at least ``threshold``, the strongest
-    of neighbours, that no glitch veto removes."""
-    window = geometry.crossing_samples(beam_sigma)
-    r, s = local_maxima(z, threshold, window)
-    keep = suppress_neighbours(z[r, s], r, s, int(np.ceil(2.0 / cfg.row_step)), 3 * window)
-    r, s = r[keep], s[keep]
-    keep = ~vetoed(snr, geometry, weights, beam_sigma, r, s, cfg)
-    return r[keep], s[keep]
 
 
 def hit_terms(snr, first, geometry, rows, weights, row, sample, beam_sigma, cfg):

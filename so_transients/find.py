@@ -25,6 +25,7 @@ from .angles import ARCMIN, mean_direction, tangent_offsets
 from .dbscan import dbscan_labels
 from .scan_geometry import constant_velocity, samples_in
 from .step_config import positive
+from .sweep_stack import StackSettings
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +74,11 @@ class FindConfig:
         """s of crossings sweep stacking adds (coherent mode with ``stack_window``), or
         None."""
         return self.stack_window if self.mode == "coherent" else None
+
+    @property
+    def stacking(self) -> StackSettings | None:
+        """Sweep stacking's settings (coherent mode with ``stack_window``), or None."""
+        return StackSettings.of(self) if self.stacking_window else None
 
     @property
     def eps(self):

@@ -18,6 +18,7 @@ package registration imports this module.
 from __future__ import annotations
 
 import logging
+from dataclasses import fields
 
 import numpy as np
 from sotodlib import core
@@ -31,6 +32,7 @@ from .cuts import CutsConfig, cut_group_candidates, read_known_sources
 from .find import SCAN_FIELD, FindConfig, find_group_candidates, group_scans
 from .fit import SPEED_TOLERANCE, FitConfig, FitInputs, fit_group_candidates
 from .significance import SignificanceConfig, significance_by_band
+from .sweep_stack import StackSettings
 from .matched_filter import FilterConfig, matched_filter, response_kernels
 from .step_config import from_yaml
 from .step_fields import GroupName, require
@@ -41,10 +43,8 @@ PSD_BIN_AXIS = "transient_psd_bin"
 PSD_EDGE_AXIS = "transient_psd_edge"
 SLOTS = "archive_slots"      # scalars in aman.transient_candidates: find's archive slots ...
 MIN_DETS = "min_dets"        # ... and detector threshold, for the later steps (and
-STACK_WINDOW = "stack_window"  # ... its sweep stacking (s, NaN: none) and seed Z, for
-STACK_SEED = "stack_seed"      # ... transient_significance, and
-STACK_SHARE = "stack_max_share"  # ... the largest share one crossing may have of a stack
-#                              fit.SPEED_TOLERANCE, the scan-speed tolerance)
+#                              fit.SPEED_TOLERANCE, the scan-speed tolerance; and the
+#                              fields of sweep_stack.StackSettings for transient_significance)
 
 
 def _register(cls):
@@ -342,9 +342,9 @@ class TransientFind(_Preprocess):
         table.wrap(SLOTS, int(self.cfg.archive_slots))
         table.wrap(MIN_DETS, int(self.cfg.min_dets))
         table.wrap(SPEED_TOLERANCE, float(self.cfg.speed_tolerance))
-        table.wrap(STACK_WINDOW, float(self.cfg.stack_window or np.nan))
-        table.wrap(STACK_SEED, float(self.cfg.stack_seed))
-        table.wrap(STACK_SHARE, float(self.cfg.stack_max_share))
+        stacking = self.cfg.stacking
+        for name in (f.name for f in fields(StackSettings)):
+            table.wrap(name, np.nan if stacking is None else getattr(stacking, name))
         _replace(aman, "transient_candidates", table)
         _replace(aman, "transient_hits", candidates.to_aman(hits, HIT_AXIS, len(hits["cand"])))
         _replace(aman, SCAN_FIELD, scan.astype(np.int32), [(0, "samps")])
@@ -506,13 +506,14 @@ class TransientSignificance(_Preprocess):
         return aman, proc_aman
 
 
-def _stacking(cands):
-    """``transient_find``'s sweep stacking (window s, seed Z, largest crossing share), or
-    None."""
-    window = float(cands[STACK_WINDOW]) if STACK_WINDOW in cands._fields else np.nan
-    share = (float(cands[STACK_SHARE]) if STACK_SHARE in cands._fields
-             else FindConfig().stack_max_share)
-    return (window, float(cands[STACK_SEED]), share) if np.isfinite(window) else None
+def _stacking(cands) -> StackSettings | None:
+    """``transient_find``'s sweep stacking as stored with its candidates, or None (a setting
+    an older archive lacks: ``FindConfig``'s default)."""
+    default = FindConfig()
+    stored = {f.name: float(cands[f.name]) if f.name in cands._fields
+              else getattr(default, f.name) for f in fields(StackSettings)}
+    window = stored["stack_window"]
+    return StackSettings(**stored) if window is not None and np.isfinite(window) else None
 
 
 @_register

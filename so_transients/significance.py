@@ -24,7 +24,6 @@ Only the cheap statistic is repeated: the slides reuse the filtered S/N, never t
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from types import SimpleNamespace
 
 import numpy as np
 
@@ -36,7 +35,8 @@ from .scan_geometry import drift_velocity
 from .scan_geometry import sample_rate as rate_of   # (``sample_rate`` names the Hz below)
 from .step_config import ConfigError, positive
 from .slide_maxima import SlideSearch
-from .sweep_stack import ScanMap, inverted_stacks, map_cell, stack_at
+from .sweep_stack import (ScanMap, StackSettings, inverted_seeds, inverted_stacks, map_cell,
+                          stack_at)
 from .tail_model import model_count_above
 
 
@@ -245,57 +245,68 @@ class Background:
 
 
 def band_background(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp, beam_sigma,
-                    sample_rate, cfg: SignificanceConfig, visit=None) -> Background:
-    """The :class:`Background` of one band of a group. ``dets``: the rows of ``snr`` (the
-    group's S/N, possibly memory-mapped: one scan of these rows is read at a time) of the
-    band's live detectors; ``xi``, ``eta``, ``sigma_amp``: theirs. ``visit(scan, maps)`` is
-    called with each scan's :class:`ScanMaps` while its data map is held."""
+                    sample_rate, cfg: SignificanceConfig, visit=None,
+                    stacking: StackSettings | None = None):
+    """``(background, maps)``: the :class:`Background` of one band of a group and, with
+    ``stacking`` (``transient_find``'s sweep stacking), every scan's data map as stacking
+    reads it (:func:`stack_map`; empty without), the background's ``stacks`` being the
+    sign-inverted maps' stacks, seeded and selected as the data's. ``dets``: the rows of
+    ``snr`` (the group's S/N, possibly memory-mapped: one scan of these rows is read at a
+    time) of the band's live detectors; ``xi``, ``eta``, ``sigma_amp``: theirs.
+    ``visit(scan, maps)`` is called with each scan's :class:`ScanMaps` while its data map
+    is held."""
     live = np.ones(len(dets), bool)
     rng = np.random.default_rng(cfg.seed)
-    scans = []
+    scans, stack_maps, seeds = [], [], []
     for s in np.unique(scan[scan >= 0]):
         samples = np.flatnonzero(scan == s)
         geometry = scan_geometry(timestamps, bore_q, xi, eta, samples, sample_rate)
-        maps = scan_maps(np.asarray(snr[dets, samples[0]:samples[-1] + 1]), geometry,
-                         beam_sigma, sigma_amp, live, samples[0], cfg, rng)
+        block = np.asarray(snr[dets, samples[0]:samples[-1] + 1])
+        maps = scan_maps(block, geometry, beam_sigma, sigma_amp, live, samples[0], cfg, rng)
         if visit is not None:
             visit(s, maps)
+        if stacking is not None:
+            stack_maps.append(stack_map(s, maps, beam_sigma, sigma_amp, live, timestamps))
+            seeds += inverted_seeds(block, stack_maps[-1], beam_sigma, sigma_amp, live, bore_q,
+                                    cfg.row_step, stacking)
         maps.z = None                        # only the background is kept
         scans.append(maps)
-    return Background.from_scans(scans, cfg)
+    background = Background.from_scans(scans, cfg)
+    if stacking is not None:
+        background.stacks = inverted_stacks(stack_maps, seeds, bore_q, timestamps, beam_sigma,
+                                            cfg.row_step, stacking, cfg.background_floor)
+    return background, stack_maps
 
 
 def group_significance(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp, beam_sigma,
-                       sample_rate, cands, cfg: SignificanceConfig, stacking=None) -> dict:
+                       sample_rate, cands, cfg: SignificanceConfig,
+                       stacking: StackSettings | None = None) -> dict:
     """``coherent_snr``, ``far``, ``far_slides``, ``far_inverted`` and ``pass_far`` of every
     candidate of one band of a group (``cands``: ``ra``, ``dec``, ``t_median``, ``scan``,
     and for sweep stacks ``n_crossings``, ``t_start``, ``t_stop``), and the group's
     background ``live_hours`` and ``z_scale`` (arguments as :func:`band_background`).
-    ``stacking``: ``transient_find``'s sweep stacking (``window``, ``seed``, ``share``), which its
-    stacks' statistic and background repeat (:func:`stack_significance`)."""
+    ``stacking``: ``transient_find``'s sweep stacking, which its stacks' statistic and
+    background repeat (:func:`stack_significance`)."""
     n = len(cands["scan"])
     stat = np.full(n, np.nan)
     stacked = np.asarray(cands.get("n_crossings", np.ones(n, int))) > 1
-    maps = [] if stacked.any() and stacking is not None else None
-    live = np.ones(len(dets), bool)
+    stacking = stacking if stacked.any() else None
 
     def visit(s, scan_maps):
         for c in np.flatnonzero((np.asarray(cands["scan"]) == s) & ~stacked):
             stat[c] = candidate_statistic(scan_maps, bore_q, timestamps, cands["ra"][c],
                                           cands["dec"][c], cands["t_median"][c], beam_sigma,
                                           cfg)
-        if maps is not None:
-            maps.append(stack_map(s, scan_maps, beam_sigma, sigma_amp, live, timestamps))
 
-    background = band_background(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp,
-                                 beam_sigma, sample_rate, cfg, visit)
+    background, maps = band_background(snr, dets, timestamps, bore_q, xi, eta, scan,
+                                       sigma_amp, beam_sigma, sample_rate, cfg, visit,
+                                       stacking)
     z = stat / background.scale
     out = background.far(z)
     out["coherent_snr"] = z
-    if maps is not None:
-        for key, values in stack_significance(maps, cands, stacked, bore_q, timestamps,
-                                              beam_sigma, background.data_hours, cfg,
-                                              stacking).items():
+    if stacking is not None:
+        for key, values in stack_significance(maps, cands, stacked, bore_q, beam_sigma,
+                                              background, cfg).items():
             out[key][stacked] = values
     # a candidate without a far (no slides possible, or its crossing reaches a scan end)
     # is not cut
@@ -316,13 +327,12 @@ def stack_map(s, maps: ScanMaps, beam_sigma, sigma_amp, live, timestamps) -> Sca
                    float(timestamps[last]))
 
 
-def stack_significance(maps, cands, stacked, bore_q, timestamps, beam_sigma, data_hours, cfg,
-                       stacking) -> dict:
+def stack_significance(maps, cands, stacked, bore_q, beam_sigma, background: Background,
+                       cfg) -> dict:
     """``coherent_snr`` and ``far`` of the sweep stacks among ``cands`` (``stacked``): the
-    stacked Z over the crossings between their ``t_start`` and ``t_stop``, and the rate of
-    the sign-inverted maps' stacks at least as high (counted, and beyond ``tail_from`` the
-    tail model), over the data's live time; time slides are not stacked (``far_slides``
-    NaN)."""
+    stacked Z over the crossings between their ``t_start`` and ``t_stop``, and
+    :meth:`Background.stack_far`, the sign-inverted maps' stacks at least as high; time
+    slides are not stacked (``far_slides`` NaN)."""
     reach = cfg.row_step * beam_sigma
     z = []
     for c in np.flatnonzero(stacked):
@@ -330,22 +340,8 @@ def stack_significance(maps, cands, stacked, bore_q, timestamps, beam_sigma, dat
                        cands["t_start"][c] - 1.0, cands["t_stop"][c] + 1.0, reach)
         z.append(np.nan if res is None else res["z"])
     z = np.asarray(z, float)
-    background = stack_background(maps, bore_q, timestamps, beam_sigma, cfg, stacking)
-    far = np.where(np.isfinite(z), inverted_rate(z, background, data_hours, cfg.tail_from),
-                   np.nan)
+    far = background.stack_far(z)
     return dict(coherent_snr=z, far=far, far_inverted=far, far_slides=np.full(len(z), np.nan))
-
-
-def stack_background(maps, bore_q, timestamps, beam_sigma, cfg: SignificanceConfig,
-                     stacking) -> np.ndarray:
-    """Z of the sign-inverted maps' sweep stacks (``maps``: :func:`stack_map` of every scan;
-    ``stacking``: ``transient_find``'s window, seed and largest crossing share), from
-    ``background_floor`` up: the
-    background of stacked candidates over the maps' live time."""
-    window, seed, share = stacking
-    settings = SimpleNamespace(stack_seed=seed, stack_max_share=share)
-    return inverted_stacks(maps, bore_q, timestamps, beam_sigma, cfg.row_step, window,
-                           settings, cfg.background_floor)
 
 
 def significance_by_band(snr, timestamps, bore_q, xi, eta, scan, sigma_amp, live, beam_sigma,
@@ -354,8 +350,8 @@ def significance_by_band(snr, timestamps, bore_q, xi, eta, scan, sigma_amp, live
     group (its detectors and candidates), the ``transient_significance`` columns for every
     candidate (candidates of a band with no live detector: NaN, passing), and the background
     live time and Z scale of the group (the first band's; one band per group in SO's
-    grouping). ``stacking``: ``transient_find``'s sweep stacking (window, seed, share) or
-    None."""
+    grouping). ``stacking``: ``transient_find``'s sweep stacking (:class:`StackSettings`)
+    or None."""
     n = len(cands["scan"])
     out = dict(coherent_snr=np.full(n, np.nan), far=np.full(n, np.nan),
                far_slides=np.full(n, np.nan), far_inverted=np.full(n, np.nan),

@@ -26,14 +26,33 @@ Everything here is on arrays (maps, boresight quaternions); no AxisManager.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from types import SimpleNamespace
 
 import numpy as np
 
 from . import pointing
 from .angles import sky_separation
-from .coherent import local_maxima
+from .coherent import row_weights
+from .coherent_peaks import peaks
+
+
+@dataclass(frozen=True)
+class StackSettings:
+    """``transient_find``'s sweep stacking, as ``transient_significance`` repeats it for the
+    sign-inverted data (field names: ``transient_find``'s settings; it stores them with its
+    candidates)."""
+
+    stack_window: float            # s of crossings stacked
+    stack_seed: float              # stacks start from single-crossing maxima this high ...
+    max_single_share: float        # ... that neither glitch veto removes
+    max_instant_share: float
+    stack_max_share: float         # one crossing makes at most this of a stack's sum
+
+    @classmethod
+    def of(cls, settings):
+        """From any object with these names as attributes (a ``FindConfig``)."""
+        return cls(**{f.name: float(getattr(settings, f.name)) for f in fields(cls)})
 
 
 @dataclass
@@ -141,24 +160,35 @@ def stack_seeds(maps, seeds, bore_q, timestamps, beam_sigma, row_step, window_s,
     return suppress(found, timestamps, 2.0 * beam_sigma)
 
 
-def inverted_stacks(maps, bore_q, timestamps, beam_sigma, row_step, window_s, cfg,
-                    floor):
-    """Z of the stacks of the sign-inverted maps (every correlation between detectors and
-    sweeps kept, no source) from ``floor`` up, seeded and selected as the data's are, less the
-    single-crossing glitch vetoes (they need the S/N, not kept): the background of stacked
+def inverted_seeds(snr, m: ScanMap, beam_sigma, sigma_amp, live, bore_q, row_step,
+                   settings: StackSettings):
+    """Seeds ``(scan, sample, ra, dec)`` of the sign-inverted map of ``m`` (``snr``: its
+    scan's S/N; ``m.z``: the data's map) as ``transient_find`` seeds the data's stacks: its
+    maxima from ``stack_seed``, the strongest of neighbours, that no glitch veto removes
+    (:func:`so_transients.coherent_peaks.peaks`)."""
+    weights, _ = row_weights(m.geometry, m.rows, beam_sigma, sigma_amp, live)
+    vetoes = SimpleNamespace(row_step=row_step, max_single_share=settings.max_single_share,
+                             max_instant_share=settings.max_instant_share)
+    r, s = peaks(snr, m.geometry, -m.z, weights, beam_sigma, settings.stack_seed, vetoes,
+                 sign=-1.0)
+    return [(m.scan, m.first + int(t), *sky_position(m.geometry, m.rows[row], bore_q,
+                                                     m.first + int(t)))
+            for row, t in zip(r, s)]
+
+
+def inverted_stacks(maps, seeds, bore_q, timestamps, beam_sigma, row_step,
+                    settings: StackSettings, floor):
+    """Z of the stacks of the sign-inverted ``maps`` (every correlation between detectors
+    and sweeps kept, no source) from ``floor`` up, from their ``seeds``
+    (:func:`inverted_seeds`) and selected as the data's are: the background of stacked
     candidates over the maps' live time."""
     flipped = [ScanMap(m.scan, m.first, m.geometry, m.rows, -m.z, -m.flux, m.n, m.t_lo,
                        m.t_hi) for m in maps]
-    seeds = []
-    for m in flipped:
-        window = m.geometry.crossing_samples(beam_sigma)
-        r, s = local_maxima(m.z, cfg.stack_seed, window)
-        seeds += [(m.scan, m.first + int(t), *sky_position(m.geometry, m.rows[row], bore_q,
-                                                           m.first + int(t)))
-                  for row, t in zip(r, s)]
-    settings = SimpleNamespace(coherent_threshold=floor, stack_max_share=cfg.stack_max_share)
+    selection = SimpleNamespace(coherent_threshold=floor,
+                                stack_max_share=settings.stack_max_share)
     return np.array([s["z"] for s in stack_seeds(flipped, seeds, bore_q, timestamps,
-                                                 beam_sigma, row_step, window_s, settings)])
+                                                 beam_sigma, row_step, settings.stack_window,
+                                                 selection)])
 
 
 def stack_at(maps, bore_q, ra, dec, t_lo, t_hi, row_reach):

@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from so_transients.coherent import row_offsets
-from so_transients.coherent_find import scan_candidates, shares
+from so_transients.coherent_find import scan_candidates
+from so_transients.coherent_peaks import shares
 from so_transients.find import FindConfig
 
 from test_coherent import FS, SIGMA_BEAM, SPEED, inject, matched_pulse, wafer
@@ -76,6 +77,33 @@ def test_a_spike_on_one_detector_is_vetoed():
     assert not [p for p in found(snr, geometry, sigma) if p["map_z"] > 8]
     assert [p for p in found(snr, geometry, sigma, max_single_share=1.0, max_instant_share=1.0)
             if p["map_z"] > 8]
+
+
+def test_the_sign_inverted_maps_maxima_are_vetoed_as_the_datas():
+    """transient_significance seeds the inverted maps' stacks with the maxima of -Z that
+    the same vetoes keep: a negative source (a source of the inverted data) is kept, a
+    negative glitch on every detector at one instant is not."""
+    from so_transients.coherent_find import scan_map
+    from so_transients.coherent_peaks import peaks
+
+    rng = np.random.default_rng(6)
+    geometry, sigma, snr, _ = crossing(rng, flux=150.0)
+    snr = -snr - 40.0 * matched_pulse(NSAMP, 3000, SIGMA_BEAM / SPEED * FS)[None, :]
+    cfg = FindConfig(mode="coherent")
+    _, z, _, _, weights = scan_map(snr, geometry, SIGMA_BEAM, sigma, np.ones(len(sigma), bool),
+                                   cfg, with_flux=False)
+    lags = geometry.lag_samples
+
+    def inverted(**vetoes):
+        r, s = peaks(snr, geometry, -z, weights, SIGMA_BEAM, 4.5,
+                     FindConfig(mode="coherent", **vetoes), sign=-1.0)
+        at_source = any(abs(t - 2000) <= 3 for t in s)
+        at_glitch = any(np.any(np.abs(t + lags - 3000) <= 2) and abs(t - 2000) > 10
+                        for t in s)
+        return at_source, at_glitch
+
+    assert inverted() == (True, False)
+    assert inverted(max_instant_share=1.0)[1]        # the veto is what removes the glitch
 
 
 @pytest.mark.parametrize("terms, lags, single, instant", [

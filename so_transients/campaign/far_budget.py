@@ -26,7 +26,7 @@ spread varies between scans.
 
 With sweep stacking (``transient_find``'s ``stack_window``), a stacked detection
 (``n_crossings`` > 1) has its own background, the sign-inverted maps' stacks of the
-noise-only groups (``transient_significance``'s, :func:`so_transients.significance.stack_background`),
+noise-only groups (``transient_significance``'s, :func:`so_transients.significance.band_background`),
 and its own budget ``z_stack_budget``; single crossings and stacks each get half of the
 paper's rate, so that together they keep to it.
 """
@@ -42,8 +42,7 @@ from astropy.table import Table
 
 from ..find import FindConfig, group_scans
 from ..scan_geometry import sample_rate
-from ..significance import (Background, SignificanceConfig, band_background,
-                            stack_background, stack_map)
+from ..significance import Background, SignificanceConfig, band_background
 from .equal_rate import PAPER_RATE_PER_WBH
 from .search_steps import step_settings
 
@@ -57,28 +56,18 @@ def group_background(state, search_steps, cfg: SignificanceConfig) -> Background
     the scans ``transient_find`` searches."""
     aman = state.aman
     where = f"{state.group.obs_id} {state.group.wafer} {state.group.band}"
-    scan, _ = group_scans(state.timestamps, aman.boresight.az, aman.boresight.el,
-                          step_settings(search_steps, FindConfig), where)
+    find = step_settings(search_steps, FindConfig)
+    scan, _ = group_scans(state.timestamps, aman.boresight.az, aman.boresight.el, find, where)
     f = aman.transient_filter
     dets = np.flatnonzero(~np.asarray(f.dead, bool))
     if not len(dets):
         raise ValueError(f"{where}: no live detector for the false-alarm background")
-    find = step_settings(search_steps, FindConfig)
     beam = float(np.median(np.asarray(f.beam_sigma)[dets]))
-    maps = []
-
-    def keep_map(s, scan_maps):          # sweep stacking: every scan's map is stacked
-        maps.append(stack_map(s, scan_maps, beam, state.sigma_amp[dets],
-                              np.ones(len(dets), bool), state.timestamps))
-
-    background = band_background(state.snr, dets, state.timestamps, state.bore_q,
-                                 state.xi[dets], state.eta[dets], scan, state.sigma_amp[dets],
-                                 beam, sample_rate(state.timestamps, where), cfg,
-                                 keep_map if find.stacking_window else None)
-    if find.stacking_window:
-        background.stacks = stack_background(maps, state.bore_q, state.timestamps, beam, cfg,
-                                             (find.stack_window, find.stack_seed,
-                                              find.stack_max_share))
+    background, _ = band_background(state.snr, dets, state.timestamps, state.bore_q,
+                                    state.xi[dets], state.eta[dets], scan,
+                                    state.sigma_amp[dets], beam,
+                                    sample_rate(state.timestamps, where), cfg,
+                                    stacking=find.stacking)
     return background
 
 

@@ -78,7 +78,7 @@ def maps_of(aman, cfg):
         geometry = scan_geometry(t, q, xi, eta, samples, sample_rate(t))
         snr = np.asarray(aman.transient_snr[dets, samples[0]:samples[-1] + 1])
         out.append(scan_maps(snr, geometry, beam, sigma, np.ones(len(dets), bool),
-                             samples[0], cfg, rng))
+                             samples[0], cfg, FindConfig(mode="coherent").vetoes, rng))
         snrs.append(snr)
     return out, beam, snrs, [sigma] * len(out)
 
@@ -92,7 +92,8 @@ def data_maxima(maps, snrs, sigmas, beam, scale):
         window = m.geometry.crossing_samples(beam)
         r, s = local_maxima(m.z, 2.0 * scale, window)
         weights, _ = row_weights(m.geometry, m.rows, beam, sigma, np.ones(len(sigma), bool))
-        keep = ~vetoed(snr, m.geometry, weights, beam, r, s, FindConfig(mode="coherent"))
+        keep = ~vetoed(snr, m.geometry, weights, beam, m.z[r, s] / scale, r, s,
+                       FindConfig(mode="coherent").vetoes)
         out.extend(m.z[r[keep], s[keep]] / scale)
     return np.asarray(out)
 

@@ -101,7 +101,7 @@ def inverted_stacks(aman, window):
         aman.transient_snr, dets, t, pointing.boresight_q(aman), xi[dets], eta[dets],
         np.asarray(aman[SCAN_FIELD]), np.asarray(f.sigma_amp)[dets],
         float(np.median(np.asarray(f.beam_sigma)[dets])), sample_rate(t),
-        SignificanceConfig(n_slides=0),
+        SignificanceConfig(n_slides=0), FindConfig().vetoes,
         stacking=FindConfig(mode="coherent", stack_window=window).stacking)
     return background.stacks, background.data_hours
 

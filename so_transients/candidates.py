@@ -84,6 +84,12 @@ SCHEMA = (
     Column("passed", "bool", None, _C, "passed every cut"),
     Column("coherent_snr", "float", None, _S, "coherent statistic Z of the crossing at the "
                                                "candidate (optional step)"),
+    Column("coherent_chi2", "float", None, _S, "chi-squared of that maximum's detector groups "
+                                                "(bins - 1 degrees of freedom for a source "
+                                                "crossing; NaN for a stack)"),
+    Column("coherent_consistent", "bool", None, _S, "passes transient_find's chi-squared test "
+                                                    "(far then ranks it among the background "
+                                                    "maxima that pass it)", missing=True),
     Column("far", "float", "1 / h", _S, "false alarms per wafer-band-hour with Z at least "
                                         "this large: the higher of far_slides and "
                                         "far_inverted"),

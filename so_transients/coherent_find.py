@@ -76,7 +76,7 @@ def scan_candidates(snr, first, geometry, beam_sigma, sigma_amp, live, cfg, keep
     rows, z, flux, n, weights = scan_map(snr, geometry, beam_sigma, sigma_amp, live, cfg,
                                          with_flux=keep is not None)
     low = cfg.coherent_threshold if keep is None else min(cfg.stack_seed, cfg.coherent_threshold)
-    r, s = peaks(snr, geometry, z, weights, beam_sigma, low, cfg)
+    r, s = peaks(snr, geometry, z, weights, beam_sigma, low, cfg.row_step, cfg.vetoes)
     if keep is not None:
         seed = z[r, s] >= cfg.stack_seed
         keep(rows, z, flux, n, r[seed], s[seed])

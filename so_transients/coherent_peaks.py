@@ -10,17 +10,52 @@ glitch veto removes it:
   position crosses within :data:`INSTANT` beam-crossing times (beam sigma / drift speed:
   the width of the filtered response to a glitch) of each other, i.e. from one instant (a
   glitch or readout jump on many detectors at once; a source's sum is spread over the
-  whole crossing).
+  whole crossing);
+- the chi-squared test (``chi2_bins``, ``chi2_tail``, ``chi2_mismatch``,
+  :mod:`so_transients.crossing_chi2`): its detectors' S/N are not in the proportions a
+  source crossing gives them.
 
 ``transient_find``'s coherent mode selects its candidates and sweep-stacking seeds so, and
-``transient_significance`` the sign-inverted data's seeds, so that the stacks' background
-is selected as the data's stacks are.
+``transient_significance`` its background (the chi-squared test on every maximum, all
+vetoes on the sign-inverted data's stack seeds), so that the background is selected as the
+data's candidates are.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass, fields
 
 import numpy as np
 
 from .coherent import local_maxima
+from .crossing_chi2 import chi2_limit, crossing_chi2
+
+
+@dataclass(frozen=True)
+class Vetoes:
+    """``transient_find``'s glitch vetoes (field names: its settings; it stores them with
+    its candidates, and ``transient_significance`` selects its background with them)."""
+
+    max_single_share: float
+    max_instant_share: float
+    chi2_bins: int
+    chi2_tail: float
+    chi2_mismatch: float
+
+    @classmethod
+    def of(cls, settings):
+        """From any object with these names as attributes (a ``FindConfig``)."""
+        return cls(**{f.name: getattr(settings, f.name) for f in fields(cls)})
+
+    def chi2(self, snr, weights, geometry, shifts, rows, samples, sign=1.0):
+        """:func:`so_transients.crossing_chi2.crossing_chi2` with these groups."""
+        return crossing_chi2(snr, weights, geometry, shifts, rows, samples,
+                             int(self.chi2_bins), sign)
+
+    def consistent(self, chi2, z):
+        """Whether maxima of normalized Z ``z`` with these ``chi2`` pass the chi-squared
+        test (NaN chi2: pass)."""
+        limit = chi2_limit(z, int(self.chi2_bins), self.chi2_tail, self.chi2_mismatch)
+        return ~(np.asarray(chi2, float) > limit)
 
 
 #: "One instant": within this many beam-crossing times (beam sigma / drift speed), the width
@@ -70,29 +105,33 @@ def sum_terms(snr, weights, lags, row, sample):
     return dets, at, weights[row, dets] * np.nan_to_num(snr[dets, at])
 
 
-def vetoed(snr, geometry, weights, beam_sigma, peak_rows, peak_samples, cfg, sign=1.0):
-    """For each map position (``peak_rows`` indices, ``peak_samples``), whether a glitch
-    veto removes it: one detector makes more than ``cfg.max_single_share`` of its sum, or
-    detectors crossed at one instant more than ``cfg.max_instant_share`` of it
-    (``weights``: the map's, :func:`so_transients.coherent.row_weights`; ``sign=-1``: of
-    the sign-inverted ``snr``'s map)."""
+def vetoed(snr, geometry, weights, beam_sigma, z, peak_rows, peak_samples, vetoes: Vetoes,
+           sign=1.0):
+    """For each map position (``peak_rows`` indices, ``peak_samples``; ``z``: its normalized
+    Z), whether a glitch veto removes it: one detector makes more than
+    ``max_single_share`` of its sum, detectors crossed at one instant more than
+    ``max_instant_share`` of it, or it fails the chi-squared test (``weights``: the map's,
+    :func:`so_transients.coherent.row_weights`; ``sign=-1``: of the sign-inverted
+    ``snr``'s map)."""
     lags = geometry.lag_samples
     window = INSTANT * geometry.crossing_samples(beam_sigma)
     out = np.zeros(len(peak_rows), bool)
     for k, (r, t0) in enumerate(zip(peak_rows, peak_samples)):
         dets, _, terms = sum_terms(snr, weights, lags, r, t0)
         single, instant = shares(sign * terms, lags[dets], window)
-        out[k] = single > cfg.max_single_share or instant > cfg.max_instant_share
-    return out
+        out[k] = single > vetoes.max_single_share or instant > vetoes.max_instant_share
+    chi2 = vetoes.chi2(snr, weights, geometry, lags, peak_rows, peak_samples, sign)
+    return out | ~vetoes.consistent(chi2, z)
 
 
-def peaks(snr, geometry, z, weights, beam_sigma, threshold, cfg, sign=1.0):
-    """``(rows, samples)`` indices of the maxima of ``z`` (the map of ``sign`` x ``snr``) at
-    least ``threshold``, the strongest of neighbours, that no glitch veto removes
-    (``cfg``: ``row_step``, ``max_single_share``, ``max_instant_share``)."""
+def peaks(snr, geometry, z, weights, beam_sigma, threshold, row_step, vetoes: Vetoes,
+          sign=1.0):
+    """``(rows, samples)`` indices of the maxima of ``z`` (the normalized map of ``sign`` x
+    ``snr``, rows ``row_step`` beam sigmas apart) at least ``threshold``, the strongest of
+    neighbours, that no glitch veto removes."""
     window = geometry.crossing_samples(beam_sigma)
     r, s = local_maxima(z, threshold, window)
-    keep = suppress_neighbours(z[r, s], r, s, int(np.ceil(2.0 / cfg.row_step)), 3 * window)
+    keep = suppress_neighbours(z[r, s], r, s, int(np.ceil(2.0 / row_step)), 3 * window)
     r, s = r[keep], s[keep]
-    keep = ~vetoed(snr, geometry, weights, beam_sigma, r, s, cfg, sign)
+    keep = ~vetoed(snr, geometry, weights, beam_sigma, z[r, s], r, s, vetoes, sign)
     return r[keep], s[keep]

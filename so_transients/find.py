@@ -24,7 +24,8 @@ from . import candidates
 from .angles import ARCMIN, mean_direction, tangent_offsets
 from .dbscan import dbscan_labels
 from .scan_geometry import constant_velocity, samples_in
-from .step_config import positive
+from .step_config import ConfigError, positive
+from .coherent_peaks import Vetoes
 from .sweep_stack import StackSettings
 
 log = logging.getLogger(__name__)
@@ -51,6 +52,9 @@ class FindConfig:
     row_step: float = 0.8             # ... beam sigmas between rows of positions
     max_single_share: float = 0.5     # ... veto: one detector makes more of the sum
     max_instant_share: float = 0.5    # ... veto: detectors crossed at one instant make more
+    chi2_bins: int = 6                # ... veto: chi-squared test over this many detector
+    chi2_tail: float = 1e-3           #     groups, failing this share of noise maxima
+    chi2_mismatch: float = 0.15       #     and allowing this model error (share of Z)
     hit_reach: float = 2.0            # ... hits: detectors within this many beam sigmas
     stack_window: float | None = None  # ... s: crossings stacked (None: no sweep stacking)
     stack_seed: float = 3.0           # ... stacks start from single-crossing maxima this high
@@ -68,12 +72,22 @@ class FindConfig:
                  stack_max_share=self.stack_max_share)
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {', '.join(MODES)}, got {self.mode!r}")
+        if self.chi2_bins == 1 or self.chi2_bins < 0 or not 0 < self.chi2_tail < 1 \
+                or self.chi2_mismatch < 0:
+            raise ConfigError(f"transient_find: chi2_bins must be 0 (no test) or 2 or more, "
+                              f"chi2_tail in (0, 1) and chi2_mismatch 0 or more; got "
+                              f"{self.chi2_bins}, {self.chi2_tail}, {self.chi2_mismatch}")
 
     @property
     def stacking_window(self):
         """s of crossings sweep stacking adds (coherent mode with ``stack_window``), or
         None."""
         return self.stack_window if self.mode == "coherent" else None
+
+    @property
+    def vetoes(self) -> Vetoes:
+        """The coherent mode's glitch vetoes."""
+        return Vetoes.of(self)
 
     @property
     def stacking(self) -> StackSettings | None:

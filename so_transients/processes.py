@@ -32,6 +32,7 @@ from .cuts import CutsConfig, cut_group_candidates, read_known_sources
 from .find import SCAN_FIELD, FindConfig, find_group_candidates, group_scans
 from .fit import SPEED_TOLERANCE, FitConfig, FitInputs, fit_group_candidates
 from .significance import SignificanceConfig, significance_by_band
+from .coherent_peaks import Vetoes
 from .sweep_stack import StackSettings
 from .matched_filter import FilterConfig, matched_filter, response_kernels
 from .step_config import from_yaml
@@ -280,6 +281,9 @@ class TransientFind(_Preprocess):
           row_step: 0.8                   # ... on rows this many beam sigmas apart
           max_single_share: 0.5           # veto: one detector makes more of the sum
           max_instant_share: 0.5          # veto: detectors crossed at one instant make more
+          chi2_bins: 6                    # veto: chi-squared test over 6 detector groups
+          chi2_tail: 0.001                # ... failing this share of noise maxima
+          chi2_mismatch: 0.15             # ... allowing this model error (share of Z)
           hit_reach: 2.0                  # hits: detectors within this many beam sigmas
           stack_window: null              # s: stack crossings this long (null: no stacking)
           stack_seed: 3.0                 # stacks start from single-crossing maxima this high
@@ -298,8 +302,11 @@ class TransientFind(_Preprocess):
     ``n_crossings`` > 1, whose hits are its strongest crossing's and whose ``t_start`` /
     ``t_stop`` span its crossings; ``transient_fit`` fits it with the position held on each
     crossing and combines the fluxes, and ``transient_significance`` gives it a ``far``
-    from stacks of the sign-inverted maps. ``stack_window``, ``stack_seed`` and
-    ``stack_max_share`` are kept in ``aman.transient_candidates`` for those steps.
+    from stacks of the sign-inverted maps. The glitch vetoes (the chi-squared test asks
+    whether the detectors' S/N are in the proportions a source crossing gives them;
+    :mod:`so_transients.coherent_peaks`) and the stacking settings are kept in
+    ``aman.transient_candidates`` for ``transient_significance``, which selects its
+    background with them.
     """
 
     name = "transient_find"
@@ -345,6 +352,8 @@ class TransientFind(_Preprocess):
         stacking = self.cfg.stacking
         for name in (f.name for f in fields(StackSettings)):
             table.wrap(name, np.nan if stacking is None else getattr(stacking, name))
+        for name in (f.name for f in fields(Vetoes)):
+            table.wrap(name, float(getattr(self.cfg, name)))
         _replace(aman, "transient_candidates", table)
         _replace(aman, "transient_hits", candidates.to_aman(hits, HIT_AXIS, len(hits["cand"])))
         _replace(aman, SCAN_FIELD, scan.astype(np.int32), [(0, "samps")])
@@ -485,7 +494,7 @@ class TransientSignificance(_Preprocess):
             np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta),
             np.asarray(aman[SCAN_FIELD]),
             np.asarray(f.sigma_amp), ~np.asarray(f.dead, bool), np.asarray(f.beam_sigma),
-            bands, rows, self.cfg, _stacking(cands))
+            bands, rows, self.cfg, _vetoes(cands), _stacking(cands))
         if not np.isfinite(live):
             log.warning("%s: %s: no band with live detectors: far not computed (NaN), "
                         "candidates pass", self.name, GroupName(aman))
@@ -506,14 +515,25 @@ class TransientSignificance(_Preprocess):
         return aman, proc_aman
 
 
-def _stacking(cands) -> StackSettings | None:
-    """``transient_find``'s sweep stacking as stored with its candidates, or None (a setting
-    an older archive lacks: ``FindConfig``'s default)."""
+def _stored(cands, cls):
+    """``transient_find``'s settings named by ``cls``'s fields, as stored with its
+    candidates (a setting an older archive lacks: ``FindConfig``'s default)."""
     default = FindConfig()
-    stored = {f.name: float(cands[f.name]) if f.name in cands._fields
-              else getattr(default, f.name) for f in fields(StackSettings)}
+    return {f.name: float(cands[f.name]) if f.name in cands._fields
+            else getattr(default, f.name) for f in fields(cls)}
+
+
+def _stacking(cands) -> StackSettings | None:
+    """``transient_find``'s sweep stacking, or None."""
+    stored = _stored(cands, StackSettings)
     window = stored["stack_window"]
     return StackSettings(**stored) if window is not None and np.isfinite(window) else None
+
+
+def _vetoes(cands) -> Vetoes:
+    """``transient_find``'s glitch vetoes."""
+    stored = _stored(cands, Vetoes)
+    return Vetoes(**{**stored, "chi2_bins": int(stored["chi2_bins"])})
 
 
 @_register

@@ -35,6 +35,7 @@ from .scan_geometry import drift_velocity
 from .scan_geometry import sample_rate as rate_of   # (``sample_rate`` names the Hz below)
 from .step_config import ConfigError, positive
 from .slide_maxima import SlideSearch
+from .coherent_peaks import Vetoes
 from .sweep_stack import (ScanMap, StackSettings, inverted_seeds, inverted_stacks, map_cell,
                           stack_at)
 from .tail_model import model_count_above
@@ -78,10 +79,13 @@ class ScanMaps:
     z: np.ndarray                    # (nrow, nsamp) unnormalized Z of the data
     data_scale: float = 1.0          # robust std of the data's map
     background: list = field(default_factory=list)   # unnormalized Z of slide maxima
+    background_ok: list = field(default_factory=list)  # ... passing the chi-squared test
     slide_scale: list = field(default_factory=list)  # robust std of each slide's map
     live_s: float = 0.0              # seconds of positions searched, over all slides
     inverted: np.ndarray = field(default_factory=lambda: np.zeros(0))  # unnormalized Z of
     #                                  the sign-inverted map's maxima (sidelobes left out)
+    inverted_ok: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # ... passing
+    #                                  the chi-squared test
     data_live_s: float = 0.0         # seconds of positions of the data's own map
 
 
@@ -96,8 +100,9 @@ def scan_geometry(timestamps, bore_q, xi, eta, samples, sample_rate):
 
 
 def scan_maps(snr, geometry, beam_sigma, sigma_amp, live, first, cfg: SignificanceConfig,
-              rng) -> ScanMaps:
-    """The data's map and the slides' background of one scan (``snr``: its samples)."""
+              vetoes: Vetoes, rng) -> ScanMaps:
+    """The data's map and the slides' background of one scan (``snr``: its samples), each
+    background maximum flagged by ``transient_find``'s chi-squared test (``vetoes``)."""
     rows = row_offsets(geometry, beam_sigma, cfg.row_step)
     snr = finite_snr(snr)                # once for the data's map and every slide's
     # float32 sums: Z to 1e-6, 3x faster than float64 on the benchmark scans (its stacks
@@ -107,8 +112,9 @@ def scan_maps(snr, geometry, beam_sigma, sigma_amp, live, first, cfg: Significan
     out = ScanMaps(first, geometry, rows, z, measured_scale(z))
     nsamp = snr.shape[1]
     window = geometry.crossing_samples(beam_sigma)
-    out.inverted = inverted_maxima(z, snr, geometry, rows, beam_sigma, sigma_amp, live,
-                                   out.data_scale, window, cfg)
+    out.inverted, out.inverted_ok = inverted_maxima(z, snr, geometry, rows, beam_sigma,
+                                                    sigma_amp, live, out.data_scale, window,
+                                                    cfg, vetoes)
     out.data_live_s = np.isfinite(z[0]).sum() / geometry.sample_rate
     min_shift = int(cfg.min_slide_s * geometry.sample_rate)
     if nsamp <= 2 * min_shift + 1:
@@ -121,23 +127,31 @@ def scan_maps(snr, geometry, beam_sigma, sigma_amp, live, first, cfg: Significan
         # a slide moves a bright source's (or a glitch's) detector spikes apart: each makes
         # maxima of its own that no multi-detector candidate resembles; they are left out
         keep = search.largest_share(r, s, offsets) <= cfg.max_single_share
-        out.background.extend(peak[keep])
+        r, s, peak = r[keep], s[keep], peak[keep]
+        chi2 = vetoes.chi2(snr, search.weights, geometry, geometry.lag_samples + offsets, r, s)
+        out.background.extend(peak)
+        out.background_ok.extend(vetoes.consistent(chi2, peak / scale))
         out.slide_scale.append(scale)
         out.live_s += nsamp / geometry.sample_rate
     return out
 
 
-def inverted_maxima(z, snr, geometry, rows, beam_sigma, sigma_amp, live, scale, window, cfg):
-    """Unnormalized Z of the local maxima of the sign-inverted data's map ``-z`` (noise with
-    every correlation between detectors kept, and no source) at least ``background_floor``
-    x ``scale``; left out: those one detector makes, and a bright source's filter sidelobes
-    (a data maximum ``max_opposite_ratio`` times higher within ``sidelobe_window``)."""
+def inverted_maxima(z, snr, geometry, rows, beam_sigma, sigma_amp, live, scale, window, cfg,
+                    vetoes: Vetoes):
+    """``(z, ok)``: unnormalized Z of the local maxima of the sign-inverted data's map ``-z``
+    (noise with every correlation between detectors kept, and no source) at least
+    ``background_floor`` x ``scale``, and whether each passes the chi-squared test; left
+    out: those one detector makes, and a bright source's filter sidelobes (a data maximum
+    ``max_opposite_ratio`` times higher within ``sidelobe_window``)."""
     r, s = local_maxima(-z, cfg.background_floor * scale, window)
     share = largest_share(snr, geometry, rows, beam_sigma, sigma_amp, live, r, s, sign=-1.0)
     half = int(round(cfg.sidelobe_window * geometry.sample_rate))
     nearby = window_max(z, r, s, 2, half)
     keep = (share <= cfg.max_single_share) & (nearby < cfg.max_opposite_ratio * -z[r, s])
-    return -z[r[keep], s[keep]]
+    r, s = r[keep], s[keep]
+    weights, _ = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
+    chi2 = vetoes.chi2(snr, weights, geometry, geometry.lag_samples, r, s, sign=-1.0)
+    return -z[r, s], vetoes.consistent(chi2, -z[r, s] / scale)
 
 
 def inverted_rate(statistics, inverted, live_hours, x0):
@@ -158,18 +172,21 @@ def inverted_rate(statistics, inverted, live_hours, x0):
 
 
 def candidate_statistic(maps: ScanMaps, bore_q, timestamps, ra, dec, t_cand, beam_sigma,
-                        cfg: SignificanceConfig) -> float:
-    """The highest unnormalized Z within one row and ``peak_window`` crossing times of the
-    position (ra, dec) seen at ``t_cand`` (NaN when outside the map)."""
+                        cfg: SignificanceConfig) -> tuple:
+    """``(z, row, sample)``: the highest unnormalized Z within one row and ``peak_window``
+    crossing times of the position (ra, dec) seen at ``t_cand``, and where it is on the
+    map (NaN and -1 when outside the map)."""
     g = maps.geometry
     i = int(np.clip(np.searchsorted(timestamps, t_cand), 0, len(timestamps) - 1))
     row, t0, _ = map_cell(g, maps.rows, maps.first, bore_q, ra, dec, i)
     half = int(round(cfg.peak_window * beam_sigma / g.speed * g.sample_rate))
     lo, hi = max(t0 - half, 0), min(t0 + half + 1, maps.z.shape[1])
-    if hi <= lo:
-        return np.nan
-    patch = maps.z[max(row - 1, 0):row + 2, lo:hi]
-    return float(np.nanmax(patch)) if np.isfinite(patch).any() else np.nan
+    r0 = max(row - 1, 0)
+    patch = maps.z[r0:row + 2, lo:hi]
+    if hi <= lo or not np.isfinite(patch).any():
+        return np.nan, -1, -1
+    i, j = np.unravel_index(np.nanargmax(patch), patch.shape)
+    return float(patch[i, j]), r0 + int(i), lo + int(j)
 
 
 @dataclass
@@ -182,6 +199,8 @@ class Background:
     slide_hours: float
     inverted: np.ndarray
     data_hours: float
+    slides_ok: np.ndarray | None = None    # each maximum passes the chi-squared test (None:
+    inverted_ok: np.ndarray | None = None  # all do)
     scale: float = 1.0
     tail_from: float | None = 3.5    # the inverted maxima's tail model starts here
     floor: float = 3.0               # maxima were counted from this Z
@@ -191,6 +210,8 @@ class Background:
 
     def __post_init__(self):
         self.slide_floor = self.floor if self.slide_floor is None else float(self.slide_floor)
+        self.slides_ok = _flags(self.slides_ok, self.slides)
+        self.inverted_ok = _flags(self.inverted_ok, self.inverted)
 
     @classmethod
     def from_scans(cls, scans, cfg: SignificanceConfig):
@@ -201,25 +222,42 @@ class Background:
         slide_scales = [s for m in scans for s in m.slide_scale]
         slide_scale = float(np.median(slide_scales)) if slide_scales else 1.0
         slides = np.concatenate([np.asarray(m.background, float) for m in scans] or [[]])
+        slides_ok = np.concatenate([np.asarray(m.background_ok, bool) for m in scans] or [[]])
         inverted = np.concatenate([m.inverted for m in scans] or [[]])
+        inverted_ok = np.concatenate([m.inverted_ok for m in scans] or [[]]).astype(bool)
         # each map's maxima were found from the floor in its own units: in the common
         # units, those of a narrower map can fall below it, and are left out
         floor = cfg.background_floor
         slide_floor = max(floor, cfg.slide_floor)
         slides, inverted = slides / slide_scale, inverted / scale
-        return cls(slides[slides >= slide_floor], sum(m.live_s for m in scans) / 3600.0,
-                   inverted[inverted >= floor], sum(m.data_live_s for m in scans) / 3600.0,
+        s, i = slides >= slide_floor, inverted >= floor
+        return cls(slides[s], sum(m.live_s for m in scans) / 3600.0, inverted[i],
+                   sum(m.data_live_s for m in scans) / 3600.0, slides_ok[s], inverted_ok[i],
                    scale, cfg.tail_from, floor, slide_floor)
 
-    def far(self, z) -> dict:
+    def far(self, z, consistent=True) -> dict:
         """``far``, ``far_slides`` and ``far_inverted`` (per hour of the wafer-band) of the
         statistics ``z`` (NaN where ``z`` is NaN; ``far_slides`` NaN below the slides' floor,
-        where they were not counted); ``far`` is the higher of the two."""
+        where they were not counted); ``far`` is the higher of the two. A statistic that
+        passes the chi-squared test (``consistent``, one flag or one per statistic) is
+        ranked among the background maxima that pass it, one that fails among all."""
         z = np.atleast_1d(np.asarray(z, float))
-        slides = (false_alarm_rate(z, self.slides, self.slide_hours)
+        consistent = np.broadcast_to(np.asarray(consistent, bool), z.shape)
+        out = {k: np.full(z.shape, np.nan) for k in ("far", "far_slides", "far_inverted")}
+        for flag in (True, False):
+            sel = consistent == flag
+            if sel.any():
+                for k, v in self._far(z[sel], flag).items():
+                    out[k][sel] = v
+        return out
+
+    def _far(self, z, consistent) -> dict:
+        slides = self.slides[self.slides_ok] if consistent else self.slides
+        inverted = self.inverted[self.inverted_ok] if consistent else self.inverted
+        slides = (false_alarm_rate(z, slides, self.slide_hours)
                   if self.slide_hours > 0 else np.full(z.shape, np.nan))
         slides = np.where(z >= self.slide_floor, slides, np.nan)
-        inverted = inverted_rate(z, self.inverted, self.data_hours, self.tail_from)
+        inverted = inverted_rate(z, inverted, self.data_hours, self.tail_from)
         finite = np.isfinite(z)
         slides, inverted = np.where(finite, slides, np.nan), np.where(finite, inverted, np.nan)
         return dict(far=np.fmax(slides, inverted), far_slides=slides, far_inverted=inverted)
@@ -234,18 +272,23 @@ class Background:
         return np.where(np.isfinite(z), inverted_rate(z, self.stacks, self.data_hours,
                                                       self.tail_from), np.nan)
 
-    def threshold(self, rate, step=0.005, top=30.0, stacked=False) -> float:
-        """The lowest Z (to ``step``) whose ``far`` (``stacked``: a sweep stack's) is at most
-        ``rate`` (NaN when no Z up to ``top`` reaches it, e.g. slides too short to resolve
-        it)."""
+    def threshold(self, rate, step=0.005, top=30.0, stacked=False, consistent=True) -> float:
+        """The lowest Z (to ``step``) whose ``far`` (``stacked``: a sweep stack's;
+        ``consistent``: of a maximum passing the chi-squared test) is at most ``rate`` (NaN
+        when no Z up to ``top`` reaches it, e.g. slides too short to resolve it)."""
         grid = np.arange(self.floor, top, step)
-        far = self.stack_far(grid) if stacked else self.far(grid)["far"]
+        far = self.stack_far(grid) if stacked else self.far(grid, consistent)["far"]
         ok = np.flatnonzero(far <= rate)
         return float(grid[ok[0]]) if len(ok) else np.nan
 
 
+def _flags(flags, values):
+    """Per-maximum flags, all True when None."""
+    return np.ones(len(values), bool) if flags is None else np.asarray(flags, bool)
+
+
 def band_background(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp, beam_sigma,
-                    sample_rate, cfg: SignificanceConfig, visit=None,
+                    sample_rate, cfg: SignificanceConfig, vetoes: Vetoes, visit=None,
                     stacking: StackSettings | None = None):
     """``(background, maps)``: the :class:`Background` of one band of a group and, with
     ``stacking`` (``transient_find``'s sweep stacking), every scan's data map as stacking
@@ -253,8 +296,9 @@ def band_background(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp, bea
     sign-inverted maps' stacks, seeded and selected as the data's. ``dets``: the rows of
     ``snr`` (the group's S/N, possibly memory-mapped: one scan of these rows is read at a
     time) of the band's live detectors; ``xi``, ``eta``, ``sigma_amp``: theirs.
-    ``visit(scan, maps)`` is called with each scan's :class:`ScanMaps` while its data map
-    is held."""
+    ``vetoes``: ``transient_find``'s glitch vetoes, which select the background as they
+    select its candidates. ``visit(scan, maps, snr)`` is called with each scan's
+    :class:`ScanMaps` and S/N while its data map is held."""
     live = np.ones(len(dets), bool)
     rng = np.random.default_rng(cfg.seed)
     scans, stack_maps, seeds = [], [], []
@@ -262,13 +306,14 @@ def band_background(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp, bea
         samples = np.flatnonzero(scan == s)
         geometry = scan_geometry(timestamps, bore_q, xi, eta, samples, sample_rate)
         block = np.asarray(snr[dets, samples[0]:samples[-1] + 1])
-        maps = scan_maps(block, geometry, beam_sigma, sigma_amp, live, samples[0], cfg, rng)
+        maps = scan_maps(block, geometry, beam_sigma, sigma_amp, live, samples[0], cfg,
+                         vetoes, rng)
         if visit is not None:
-            visit(s, maps)
+            visit(s, maps, block)
         if stacking is not None:
             stack_maps.append(stack_map(s, maps, beam_sigma, sigma_amp, live, timestamps))
             seeds += inverted_seeds(block, stack_maps[-1], beam_sigma, sigma_amp, live, bore_q,
-                                    cfg.row_step, stacking)
+                                    cfg.row_step, stacking, vetoes)
         maps.z = None                        # only the background is kept
         scans.append(maps)
     background = Background.from_scans(scans, cfg)
@@ -279,31 +324,38 @@ def band_background(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp, bea
 
 
 def group_significance(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp, beam_sigma,
-                       sample_rate, cands, cfg: SignificanceConfig,
+                       sample_rate, cands, cfg: SignificanceConfig, vetoes: Vetoes,
                        stacking: StackSettings | None = None) -> dict:
-    """``coherent_snr``, ``far``, ``far_slides``, ``far_inverted`` and ``pass_far`` of every
+    """``coherent_snr``, ``coherent_chi2``, ``coherent_consistent``, ``far``, ``far_slides``,
+    ``far_inverted`` and ``pass_far`` of every
     candidate of one band of a group (``cands``: ``ra``, ``dec``, ``t_median``, ``scan``,
     and for sweep stacks ``n_crossings``, ``t_start``, ``t_stop``), and the group's
     background ``live_hours`` and ``z_scale`` (arguments as :func:`band_background`).
     ``stacking``: ``transient_find``'s sweep stacking, which its stacks' statistic and
     background repeat (:func:`stack_significance`)."""
     n = len(cands["scan"])
-    stat = np.full(n, np.nan)
+    stat, chi2 = np.full(n, np.nan), np.full(n, np.nan)
     stacked = np.asarray(cands.get("n_crossings", np.ones(n, int))) > 1
     stacking = stacking if stacked.any() else None
+    live = np.ones(len(dets), bool)
 
-    def visit(s, scan_maps):
+    def visit(s, scan_maps, block):
+        g = scan_maps.geometry
+        weights, _ = row_weights(g, scan_maps.rows, beam_sigma, sigma_amp, live)
         for c in np.flatnonzero((np.asarray(cands["scan"]) == s) & ~stacked):
-            stat[c] = candidate_statistic(scan_maps, bore_q, timestamps, cands["ra"][c],
-                                          cands["dec"][c], cands["t_median"][c], beam_sigma,
-                                          cfg)
+            stat[c], row, sample = candidate_statistic(
+                scan_maps, bore_q, timestamps, cands["ra"][c], cands["dec"][c],
+                cands["t_median"][c], beam_sigma, cfg)
+            if row >= 0:
+                chi2[c] = vetoes.chi2(block, weights, g, g.lag_samples, [row], [sample])[0]
 
     background, maps = band_background(snr, dets, timestamps, bore_q, xi, eta, scan,
-                                       sigma_amp, beam_sigma, sample_rate, cfg, visit,
+                                       sigma_amp, beam_sigma, sample_rate, cfg, vetoes, visit,
                                        stacking)
     z = stat / background.scale
-    out = background.far(z)
-    out["coherent_snr"] = z
+    consistent = vetoes.consistent(chi2, z)
+    out = background.far(z, consistent)
+    out["coherent_snr"], out["coherent_chi2"], out["coherent_consistent"] = z, chi2, consistent
     if stacking is not None:
         for key, values in stack_significance(maps, cands, stacked, bore_q, beam_sigma,
                                               background, cfg).items():
@@ -345,7 +397,8 @@ def stack_significance(maps, cands, stacked, bore_q, beam_sigma, background: Bac
 
 
 def significance_by_band(snr, timestamps, bore_q, xi, eta, scan, sigma_amp, live, beam_sigma,
-                         bands, cands, cfg: SignificanceConfig, stacking=None):
+                         bands, cands, cfg: SignificanceConfig, vetoes: Vetoes,
+                         stacking=None):
     """``(columns, live_hours, z_scale)``: :func:`group_significance` for each band of a
     group (its detectors and candidates), the ``transient_significance`` columns for every
     candidate (candidates of a band with no live detector: NaN, passing), and the background
@@ -353,7 +406,8 @@ def significance_by_band(snr, timestamps, bore_q, xi, eta, scan, sigma_amp, live
     grouping). ``stacking``: ``transient_find``'s sweep stacking (:class:`StackSettings`)
     or None."""
     n = len(cands["scan"])
-    out = dict(coherent_snr=np.full(n, np.nan), far=np.full(n, np.nan),
+    out = dict(coherent_snr=np.full(n, np.nan), coherent_chi2=np.full(n, np.nan),
+               coherent_consistent=np.ones(n, bool), far=np.full(n, np.nan),
                far_slides=np.full(n, np.nan), far_inverted=np.full(n, np.nan),
                pass_far=np.ones(n, bool))
     fs = rate_of(timestamps)
@@ -372,7 +426,7 @@ def significance_by_band(snr, timestamps, bore_q, xi, eta, scan, sigma_amp, live
                 sub[key] = np.asarray(cands[key])[sel]
         res = group_significance(snr, dets, timestamps, bore_q, xi[dets], eta[dets], scan,
                                  sigma_amp[dets], float(np.median(beam_sigma[dets])), fs, sub,
-                                 cfg, stacking)
+                                 cfg, vetoes, stacking)
         for k in out:
             out[k][sel] = res[k]
         if not np.isfinite(live_hours):

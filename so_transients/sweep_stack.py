@@ -44,9 +44,7 @@ class StackSettings:
     candidates)."""
 
     stack_window: float            # s of crossings stacked
-    stack_seed: float              # stacks start from single-crossing maxima this high ...
-    max_single_share: float        # ... that neither glitch veto removes
-    max_instant_share: float
+    stack_seed: float              # stacks start from single-crossing maxima this high
     stack_max_share: float         # one crossing makes at most this of a stack's sum
 
     @classmethod
@@ -161,16 +159,14 @@ def stack_seeds(maps, seeds, bore_q, timestamps, beam_sigma, row_step, window_s,
 
 
 def inverted_seeds(snr, m: ScanMap, beam_sigma, sigma_amp, live, bore_q, row_step,
-                   settings: StackSettings):
+                   settings: StackSettings, vetoes):
     """Seeds ``(scan, sample, ra, dec)`` of the sign-inverted map of ``m`` (``snr``: its
     scan's S/N; ``m.z``: the data's map) as ``transient_find`` seeds the data's stacks: its
-    maxima from ``stack_seed``, the strongest of neighbours, that no glitch veto removes
-    (:func:`so_transients.coherent_peaks.peaks`)."""
+    maxima from ``stack_seed``, the strongest of neighbours, that no glitch veto
+    (``vetoes``, :class:`so_transients.coherent_peaks.Vetoes`) removes."""
     weights, _ = row_weights(m.geometry, m.rows, beam_sigma, sigma_amp, live)
-    vetoes = SimpleNamespace(row_step=row_step, max_single_share=settings.max_single_share,
-                             max_instant_share=settings.max_instant_share)
-    r, s = peaks(snr, m.geometry, -m.z, weights, beam_sigma, settings.stack_seed, vetoes,
-                 sign=-1.0)
+    r, s = peaks(snr, m.geometry, -m.z, weights, beam_sigma, settings.stack_seed, row_step,
+                 vetoes, sign=-1.0)
     return [(m.scan, m.first + int(t), *sky_position(m.geometry, m.rows[row], bore_q,
                                                      m.first + int(t)))
             for row, t in zip(r, s)]

@@ -137,6 +137,7 @@ def test_false_alarm_rate_decreases_with_the_statistic():
 def test_a_bright_source_does_not_leak_into_its_own_background():
     """A time slide scatters a bright source's detector spikes: without leaving out the
     maxima one detector makes, a 3 Jy source filled the background with Z >= 7 peaks."""
+    from so_transients.find import FindConfig
     from so_transients.significance import SignificanceConfig, scan_maps
 
     rng = np.random.default_rng(6)
@@ -144,11 +145,12 @@ def test_a_bright_source_does_not_leak_into_its_own_background():
     live = np.ones(len(sigma), bool)
     cfg = SignificanceConfig(n_slides=10, min_slide_s=1.0)
     noise = rng.normal(size=(len(sigma), 6000))
-    quiet = scan_maps(noise, geometry, SIGMA_BEAM, sigma, live, 0, cfg,
+    vetoes = FindConfig().vetoes
+    quiet = scan_maps(noise, geometry, SIGMA_BEAM, sigma, live, 0, cfg, vetoes,
                       np.random.default_rng(1))
     bright = noise.copy()
     inject(bright, geometry, sigma, 3000.0, 3000, 0.0)
-    loud = scan_maps(bright, geometry, SIGMA_BEAM, sigma, live, 0, cfg,
+    loud = scan_maps(bright, geometry, SIGMA_BEAM, sigma, live, 0, cfg, vetoes,
                      np.random.default_rng(1))
     n_quiet = np.sum(np.asarray(quiet.background) >= 7)
     n_loud = np.sum(np.asarray(loud.background) >= 7)

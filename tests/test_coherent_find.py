@@ -75,7 +75,8 @@ def test_a_spike_on_one_detector_is_vetoed():
     snr = rng.normal(size=(len(sigma), NSAMP))
     snr[100] += 80.0 * matched_pulse(NSAMP, 2500, SIGMA_BEAM / SPEED * FS)
     assert not [p for p in found(snr, geometry, sigma) if p["map_z"] > 8]
-    assert [p for p in found(snr, geometry, sigma, max_single_share=1.0, max_instant_share=1.0)
+    assert [p for p in found(snr, geometry, sigma, max_single_share=1.0, max_instant_share=1.0,
+                             chi2_bins=0)
             if p["map_z"] > 8]
 
 
@@ -95,15 +96,15 @@ def test_the_sign_inverted_maps_maxima_are_vetoed_as_the_datas():
     lags = geometry.lag_samples
 
     def inverted(**vetoes):
-        r, s = peaks(snr, geometry, -z, weights, SIGMA_BEAM, 4.5,
-                     FindConfig(mode="coherent", **vetoes), sign=-1.0)
+        r, s = peaks(snr, geometry, -z, weights, SIGMA_BEAM, 4.5, cfg.row_step,
+                     FindConfig(mode="coherent", **vetoes).vetoes, sign=-1.0)
         at_source = any(abs(t - 2000) <= 3 for t in s)
         at_glitch = any(np.any(np.abs(t + lags - 3000) <= 2) and abs(t - 2000) > 10
                         for t in s)
         return at_source, at_glitch
 
     assert inverted() == (True, False)
-    assert inverted(max_instant_share=1.0)[1]        # the veto is what removes the glitch
+    assert inverted(max_instant_share=1.0, chi2_bins=0)[1]   # the vetoes remove the glitch
 
 
 @pytest.mark.parametrize("terms, lags, single, instant", [

@@ -197,7 +197,7 @@ def test_each_detection_is_held_to_its_own_budget():
     """A sweep stack (n_crossings > 1) against the stacks' Z, a single crossing against the
     single crossings'; the noise-only check and far alike."""
     b = {"f090": _stacking_background()}
-    z, z_stack = band_budgets(b)["f090"]
+    z, z_stack, _ = band_budgets(b)["f090"]
     assert np.isfinite(z_stack) and z_stack != z
     low, high = min(z, z_stack), max(z, z_stack)
     table = Table({"band": ["f090"] * 2, "map_z": [high - 0.01] * 2, "snr_fit": [4.0] * 2,

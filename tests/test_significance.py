@@ -145,6 +145,7 @@ def test_the_inverted_rate_counts_then_follows_the_tail_model():
 
 def test_a_bright_sources_filter_sidelobes_are_not_inverted_background():
     from so_transients.coherent import row_offsets
+    from so_transients.find import FindConfig
     from so_transients.significance import inverted_maxima, SignificanceConfig
     from so_transients.coherent import coherent_map
 
@@ -162,7 +163,8 @@ def test_a_bright_sources_filter_sidelobes_are_not_inverted_background():
     z, _ = coherent_map(snr, geometry, rows, SIGMA_BEAM, sigma, live)
 
     def near_source(cfg):
-        out = inverted_maxima(z, snr, geometry, rows, SIGMA_BEAM, sigma, live, 1.0, 3, cfg)
+        out, _ = inverted_maxima(z, snr, geometry, rows, SIGMA_BEAM, sigma, live, 1.0, 3, cfg,
+                                 FindConfig().vetoes)
         return np.sum(out >= 10)                                # far above the noise
 
     assert near_source(SignificanceConfig()) == 0

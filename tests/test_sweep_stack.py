@@ -113,8 +113,8 @@ def test_stacked_z_of_noise_has_unit_spread(slow_flare):
     band_background(aman.transient_snr, dets, t, q, np.asarray(aman.focal_plane.xi)[dets],
                     np.asarray(aman.focal_plane.eta)[dets], scan,
                     np.asarray(f.sigma_amp)[dets], beam, sample_rate(t),
-                    SignificanceConfig(n_slides=1),
-                    lambda s, m: maps.append(stack_map(s, m, beam, np.asarray(
+                    SignificanceConfig(n_slides=1), FindConfig().vetoes,
+                    lambda s, m, _: maps.append(stack_map(s, m, beam, np.asarray(
                         f.sigma_amp)[dets], np.ones(len(dets), bool), t)))
     rng = np.random.default_rng(0)
     truth = slow_flare.flares

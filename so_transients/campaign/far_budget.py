@@ -66,7 +66,7 @@ def group_background(state, search_steps, cfg: SignificanceConfig) -> Background
     background, _ = band_background(state.snr, dets, state.timestamps, state.bore_q,
                                     state.xi[dets], state.eta[dets], scan,
                                     state.sigma_amp[dets], beam,
-                                    sample_rate(state.timestamps, where), cfg,
+                                    sample_rate(state.timestamps, where), cfg, find.vetoes,
                                     stacking=find.stacking)
     return background
 
@@ -74,6 +74,7 @@ def group_background(state, search_steps, cfg: SignificanceConfig) -> Background
 def save_background(background: Background, path, stamp):
     stacks = {} if background.stacks is None else {"stacks": background.stacks}
     np.savez(path, slides=background.slides, inverted=background.inverted, **stacks,
+             slides_ok=background.slides_ok, inverted_ok=background.inverted_ok,
              live=json.dumps(dict(slide_hours=background.slide_hours,
                                   data_hours=background.data_hours, scale=background.scale,
                                   tail_from=background.tail_from, floor=background.floor,
@@ -85,8 +86,8 @@ def load_background(path) -> tuple:
     saved = np.load(path)
     live = json.loads(str(saved["live"]))
     stamp = live.pop("stamp")
-    stacks = saved["stacks"] if "stacks" in saved.files else None
-    return Background(saved["slides"], inverted=saved["inverted"], stacks=stacks, **live), stamp
+    optional = {k: saved[k] for k in ("stacks", "slides_ok", "inverted_ok") if k in saved.files}
+    return Background(saved["slides"], inverted=saved["inverted"], **optional, **live), stamp
 
 
 def background_done(folder, stamp) -> bool:
@@ -95,8 +96,9 @@ def background_done(folder, stamp) -> bool:
 
 
 def background_tables(folders: dict):
-    """``(maxima, live)``: every group's background maxima (``band``, ``kind``: slides or
-    inverted, ``z``) and live times (:data:`LIVE_COLUMNS`), for the groups that have one."""
+    """``(maxima, live)``: every group's background maxima (``band``, ``kind``: slides,
+    inverted or stacks, ``z``, ``consistent``: it passes the chi-squared test) and live
+    times (:data:`LIVE_COLUMNS`), for the groups that have one."""
     maxima, live = [], []
     for group, folder in folders.items():
         path = Path(folder) / "background.npz"
@@ -104,12 +106,15 @@ def background_tables(folders: dict):
             continue
         b, _ = load_background(path)
         stacks = () if b.stacks is None else b.stacks
-        for kind, z in (("slides", b.slides), ("inverted", b.inverted), ("stacks", stacks)):
-            maxima += [(group.band, kind, float(v)) for v in z]
+        for kind, z, ok in (("slides", b.slides, b.slides_ok),
+                            ("inverted", b.inverted, b.inverted_ok),
+                            ("stacks", stacks, np.ones(len(stacks), bool))):
+            maxima += [(group.band, kind, float(v), bool(k)) for v, k in zip(z, ok)]
         live.append((group.band, group.obs_id, group.wafer, b.slide_hours, b.data_hours,
                      b.scale, np.nan if b.tail_from is None else b.tail_from, b.floor,
                      b.slide_floor, b.stacks is not None))
-    maxima = Table(rows=maxima or None, names=("band", "kind", "z"), dtype=("U8", "U8", float))
+    maxima = Table(rows=maxima or None, names=("band", "kind", "z", "consistent"),
+                   dtype=("U8", "U8", float, bool))
     live = Table(rows=live or None, names=LIVE_COLUMNS,
                  dtype=("U8", "U64", "U8", float, float, float, float, float, float, bool))
     live["slide_hours"].unit = live["data_hours"].unit = u.hour
@@ -123,11 +128,13 @@ def pooled_backgrounds(maxima: Table, live: Table) -> dict:
         rows = live[live["band"] == band]
         mine = maxima[maxima["band"] == band]
         tail = float(rows["tail_from"][0])
+        ok = (np.asarray(mine["consistent"], bool) if "consistent" in mine.colnames
+              else np.ones(len(mine), bool))
+        slides, inverted = mine["kind"] == "slides", mine["kind"] == "inverted"
         out[band] = Background(
-            np.asarray(mine["z"][mine["kind"] == "slides"], float),
-            float(np.sum(rows["slide_hours"])),
-            np.asarray(mine["z"][mine["kind"] == "inverted"], float),
-            float(np.sum(rows["data_hours"])), np.nan,
+            np.asarray(mine["z"][slides], float), float(np.sum(rows["slide_hours"])),
+            np.asarray(mine["z"][inverted], float), float(np.sum(rows["data_hours"])),
+            ok[slides], ok[inverted], np.nan,
             None if not np.isfinite(tail) else tail, float(rows["floor"][0]),
             float(np.max(rows["slide_floor"])) if "slide_floor" in rows.colnames else None,
             np.asarray(mine["z"][mine["kind"] == "stacks"], float)
@@ -173,21 +180,22 @@ def budget_table(backgrounds: dict, fitted_noise: Table, wafer_hours: dict,
     rows = []
     for band, b in backgrounds.items():
         target = PAPER_RATE_PER_WBH.get(band, np.nan)
-        z, z_stack = budgets[band]
+        z, z_stack, z_failing = budgets[band]
         mine = np.asarray(fitted_noise["band"]).astype(str) == band
         found = np.asarray(fitted_noise["detected"], bool)[mine] & above[mine]
         hours = wafer_hours.get(band, np.nan)
         n = int(found.sum())
-        rows.append((band, statistics[band], target, z, z_stack, b.slide_hours, b.data_hours,
+        rows.append((band, statistics[band], target, z, z_stack, z_failing, b.slide_hours,
+                     b.data_hours,
                      len(b.slides), len(b.inverted), 0 if b.stacks is None else len(b.stacks),
                      hours, n, n / hours, np.sqrt(max(n, 1)) / hours, target * hours))
     table = Table(rows=rows or None,
                   names=("band", "statistic", "target_per_wbh", "z_budget", "z_stack_budget",
-                         "slide_hours", "data_hours", "n_slide_maxima", "n_inverted_maxima",
+                         "z_budget_chi2_failed", "slide_hours", "data_hours", "n_slide_maxima", "n_inverted_maxima",
                          "n_stack_maxima", "wafer_hours", "n_noise_above", "noise_rate",
                          "noise_rate_err", "expected_above"),
-                  dtype=("U8", "U16", float, float, float, float, float, int, int, int, float,
-                         int, float, float, float))
+                  dtype=("U8", "U16", float, float, float, float, float, float, int, int, int,
+                         float, int, float, float, float))
     for name in ("slide_hours", "data_hours", "wafer_hours"):
         table[name].unit = u.hour
     for name in ("target_per_wbh", "noise_rate", "noise_rate_err"):
@@ -196,9 +204,11 @@ def budget_table(backgrounds: dict, fitted_noise: Table, wafer_hours: dict,
 
 
 def band_budgets(backgrounds: dict) -> dict:
-    """``{band: (z_budget, z_stack_budget)}``: the lowest Z of a single crossing and of a
-    sweep stack (NaN without stacking) within the paper's rate, split in halves between the
-    two when the band's search stacks."""
+    """``{band: (z_budget, z_stack_budget, z_budget_chi2_failed)}``: the lowest Z of a single
+    crossing and of a sweep stack (NaN without stacking) within the paper's rate, split in
+    halves between the two when the band's search stacks, and of a single crossing that
+    fails the chi-squared test (ranked among every background maximum, not only those that
+    pass it)."""
     out = {}
     for band, b in backgrounds.items():
         target = PAPER_RATE_PER_WBH.get(band, np.nan)
@@ -206,29 +216,39 @@ def band_budgets(backgrounds: dict) -> dict:
         z = b.threshold(rate) if np.isfinite(rate) else np.nan
         z_stack = b.threshold(rate, stacked=True) if b.stacks is not None and \
             np.isfinite(rate) else np.nan
+        z_failing = b.threshold(rate, consistent=False) if np.isfinite(rate) else np.nan
         if np.isfinite(target) and not np.isfinite(z):
             log.warning("%s: %.1f h of slides and %.2f h of inverted data cannot resolve the "
                         "paper's rate of %.3f per wafer-band-hour: no thresholds at a "
                         "false-alarm budget (more noise-only hours or n_slides)", band,
                         b.slide_hours, b.data_hours, target)
-        out[band] = (z, z_stack)
+        out[band] = (z, z_stack, z_failing)
     return out
 
 
 def budget_margin(table: Table, band_key: str, statistics: dict, budgets: dict) -> np.ndarray:
     """Each row's statistic (:func:`band_statistic`) less its budget (:func:`band_budgets`:
-    a sweep stack's, ``n_crossings`` > 1, or a single crossing's): >= 0 is within the
-    false-alarm budget (NaN: no statistic or no budget)."""
+    a sweep stack's, ``n_crossings`` > 1, or a single crossing's, by whether it passes the
+    chi-squared test, ``coherent_consistent``): >= 0 is within the false-alarm budget (NaN:
+    no statistic or no budget)."""
     margin = band_statistic(table, band_key, statistics)
     if not len(table):
         return margin
     bands = np.asarray(table[band_key]).astype(str)
     stacked = (np.ma.filled(np.ma.asarray(table["n_crossings"], float), 1.0) > 1
                if "n_crossings" in table.colnames else np.zeros(len(table), bool))
+    consistent = _consistent(table)
     for i, band in enumerate(bands):
-        z, z_stack = budgets.get(band, (np.nan, np.nan))
-        margin[i] -= z_stack if stacked[i] else z
+        z, z_stack, z_failing = budgets.get(band, (np.nan,) * 3)
+        margin[i] -= z_stack if stacked[i] else z if consistent[i] else z_failing
     return margin
+
+
+def _consistent(table: Table) -> np.ndarray:
+    """Each row's ``coherent_consistent`` (True where missing or masked)."""
+    if "coherent_consistent" not in table.colnames:
+        return np.ones(len(table), bool)
+    return np.ma.filled(np.ma.asarray(table["coherent_consistent"], bool), True)
 
 
 def noise_far(backgrounds: dict, fitted_noise: Table, statistics: dict | None = None
@@ -250,7 +270,8 @@ def noise_far(backgrounds: dict, fitted_noise: Table, statistics: dict | None = 
     for band, b in backgrounds.items():
         sel = np.asarray(out["band"]).astype(str) == band
         z = np.asarray(out["z"], float)
-        far[sel & ~stacked] = b.far(z[sel & ~stacked])["far"]
+        single = sel & ~stacked
+        far[single] = b.far(z[single], _consistent(fitted_noise)[keep][single])["far"]
         far[sel & stacked] = b.stack_far(z[sel & stacked])
     out["far"] = far * (1 / u.hour)
     return out

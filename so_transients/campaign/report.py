@@ -330,8 +330,8 @@ def far_budget_tables(tables: dict, wafer_hours: dict, seed=0) -> dict:
     budget = budget_table(backgrounds, tables["fitted_noise"], wafer_hours, statistics)
     matched = tables["flux_residuals"].copy(copy_data=False)
     # each detection against its own budget (a sweep stack's or a single crossing's)
-    budgets = {str(r["band"]): (float(r["z_budget"]), float(r["z_stack_budget"]))
-               for r in budget}
+    budgets = {str(r["band"]): (float(r["z_budget"]), float(r["z_stack_budget"]),
+                                float(r["z_budget_chi2_failed"])) for r in budget}
     matched["budget_margin"] = budget_margin(matched, "bandpass", statistics, budgets)
     eff = efficiency_at(tables["flares"], matched, {band: 0.0 for band in backgrounds},
                         column="budget_margin")

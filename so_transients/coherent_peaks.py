@@ -27,7 +27,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from .coherent import local_maxima
-from .crossing_chi2 import chi2_limit, crossing_chi2
+from .crossing_chi2 import chi2_limit, crossing_chi2, detector_groups
 
 
 @dataclass(frozen=True)
@@ -46,10 +46,16 @@ class Vetoes:
         """From any object with these names as attributes (a ``FindConfig``)."""
         return cls(**{f.name: getattr(settings, f.name) for f in fields(cls)})
 
-    def chi2(self, snr, weights, geometry, shifts, rows, samples, sign=1.0):
-        """:func:`so_transients.crossing_chi2.crossing_chi2` with these groups."""
-        return crossing_chi2(snr, weights, geometry, shifts, rows, samples,
-                             int(self.chi2_bins), sign)
+    def groups(self, weights, geometry) -> tuple:
+        """:func:`so_transients.crossing_chi2.detector_groups` of a map."""
+        return detector_groups(weights, geometry, int(self.chi2_bins))
+
+    def chi2(self, snr, weights, geometry, shifts, rows, samples, sign=1.0, groups=None):
+        """:func:`so_transients.crossing_chi2.crossing_chi2` of the map positions (``groups``:
+        :meth:`groups`, computed here when not given)."""
+        groups = self.groups(weights, geometry) if groups is None else groups
+        return crossing_chi2(snr, weights, groups, int(self.chi2_bins), shifts, rows, samples,
+                             sign)
 
     def consistent(self, chi2, z):
         """Whether maxima of normalized Z ``z`` with these ``chi2`` pass the chi-squared

@@ -61,17 +61,24 @@ def member_groups(indptr, members, across, lags, bins):
     return (rank + block) % bins
 
 
-def crossing_chi2(snr, weights, geometry, shifts, rows, samples, bins, sign=1.0):
+def detector_groups(weights, geometry, bins) -> tuple:
+    """``(indptr, members, groups)``: the detectors of each row of a map (``weights``: its,
+    :func:`so_transients.coherent.row_weights`; ``geometry``: its
+    :class:`so_transients.coherent.CrossingGeometry`) and their groups
+    (:func:`member_groups`), for :func:`crossing_chi2`; every slide of a scan shares them."""
+    indptr, members = row_members(weights)
+    return indptr, members, member_groups(indptr, members, np.asarray(geometry.across),
+                                          np.asarray(geometry.lag_samples), max(bins, 1))
+
+
+def crossing_chi2(snr, weights, groups, bins, shifts, rows, samples, sign=1.0):
     """chi2 of each map position (``rows`` indices, ``samples``) of the map of ``sign`` x
     ``snr`` whose detectors are read at ``(t + shifts[d]) % nsamp`` (``shifts``: the lags,
-    plus a time slide's offsets); ``weights``: the map's
-    (:func:`so_transients.coherent.row_weights`), ``geometry``: its
-    :class:`so_transients.coherent.CrossingGeometry`. NaN without ``bins`` >= 2."""
+    plus a time slide's offsets); ``weights``: the map's, ``groups``: their
+    :func:`detector_groups`. NaN without ``bins`` >= 2."""
     if bins < 2:
         return np.full(len(rows), np.nan)
-    indptr, members = row_members(weights)
-    groups = member_groups(indptr, members, np.asarray(geometry.across),
-                           np.asarray(geometry.lag_samples), bins)
+    indptr, members, groups = groups
     out = np.zeros(len(rows))
     _chi2(np.asarray(snr), np.ascontiguousarray(weights), indptr, members, groups, bins,
           np.asarray(shifts, np.int64), np.asarray(rows, np.int64),

@@ -120,6 +120,7 @@ def scan_maps(snr, geometry, beam_sigma, sigma_amp, live, first, cfg: Significan
     if nsamp <= 2 * min_shift + 1:
         return out
     search = SlideSearch(snr, geometry, rows, beam_sigma, sigma_amp, live, window)
+    groups = vetoes.groups(search.weights, geometry)
     floor = max(cfg.background_floor, cfg.slide_floor)
     for _ in range(cfg.n_slides):
         offsets = time_slide_offsets(snr.shape[0], nsamp, min_shift, rng)
@@ -128,7 +129,8 @@ def scan_maps(snr, geometry, beam_sigma, sigma_amp, live, first, cfg: Significan
         # maxima of its own that no multi-detector candidate resembles; they are left out
         keep = search.largest_share(r, s, offsets) <= cfg.max_single_share
         r, s, peak = r[keep], s[keep], peak[keep]
-        chi2 = vetoes.chi2(snr, search.weights, geometry, geometry.lag_samples + offsets, r, s)
+        chi2 = vetoes.chi2(snr, search.weights, geometry, geometry.lag_samples + offsets, r, s,
+                           groups=groups)
         out.background.extend(peak)
         out.background_ok.extend(vetoes.consistent(chi2, peak / scale))
         out.slide_scale.append(scale)

@@ -5,7 +5,7 @@ import pytest
 from scipy.stats import chi2 as chi2_law
 
 from so_transients.coherent import coherent_map, row_offsets, row_weights
-from so_transients.crossing_chi2 import chi2_limit, crossing_chi2
+from so_transients.crossing_chi2 import chi2_limit, crossing_chi2, detector_groups
 from so_transients.find import FindConfig
 from so_transients.significance import Background
 
@@ -24,7 +24,7 @@ def test_noise_follows_the_chi2_law_of_bins_minus_one_degrees_of_freedom():
     lags = geometry.lag_samples
     n = 3000
     r, t = rng.integers(len(rows), size=n), rng.integers(200, NSAMP - 200, size=n)
-    c = crossing_chi2(snr, weights, geometry, lags, r, t, BINS)
+    c = crossing_chi2(snr, weights, detector_groups(weights, geometry, BINS), BINS, lags, r, t)
     # independent groups of independent unit-variance S/N: mean bins - 1, variance
     # 2 (bins - 1); positions overlap, so allow 5 standard errors of n values
     assert abs(c.mean() - (BINS - 1)) < 5 * np.sqrt(2 * (BINS - 1) / n)
@@ -49,7 +49,8 @@ def test_a_source_crossing_passes_even_when_its_flux_changes_within_the_crossing
     z, _ = coherent_map(snr, geometry, rows, SIGMA_BEAM, sigma, np.ones(len(sigma), bool))
     r, t = np.unravel_index(np.nanargmax(z), z.shape)
     weights, _ = row_weights(geometry, rows, SIGMA_BEAM, sigma, np.ones(len(sigma), bool))
-    value = crossing_chi2(snr, weights, geometry, lags, [r], [t], BINS)[0]
+    value = crossing_chi2(snr, weights, detector_groups(weights, geometry, BINS), BINS, lags,
+                          [r], [t])[0]
     cfg = FindConfig()
     assert z[r, t] > 10
     assert value <= chi2_limit(z[r, t], BINS, cfg.chi2_tail, cfg.chi2_mismatch)

@@ -10,8 +10,10 @@ slides, as ``transient_significance`` does. If the slides model the data's noise
 of the data map's local maxima with Z >= z equals far(z) x the data's live time for every z
 (Poisson errors); the sign-inverted data's maxima (noise with every correlation kept, no
 source) are a second model over the same live time. The data's maxima are counted less
-those the coherent mode's glitch vetoes remove. Each map is in units of its own measured spread, as
-``transient_significance`` normalizes them: time slides remove the correlation of
+those the coherent mode's glitch vetoes remove, and the backgrounds' less those failing its
+chi-squared test, as ``transient_significance`` ranks a candidate that passes it. Each map
+is in units of its own measured spread, as ``transient_significance`` normalizes them:
+time slides remove the correlation of
 neighbouring detectors, so the data's spread is wider than the slides'. Prints the
 comparison and both spreads; then gives every data maximum its ``far`` as the step gives a
 candidate's (the higher of the slides' and the inverted data's rate, the latter with its tail
@@ -148,11 +150,13 @@ def main(argv=None):
     elapsed = time.perf_counter() - t1
     scale = float(np.median([s for m in maps for s in m.slide_scale]))
     data_scale = float(np.median([measured_scale(m.z) for m in maps]))
-    background = np.concatenate([np.asarray(m.background) for m in maps]) / scale
+    # the background maxima that pass the chi-squared test, as the data's maxima do
+    background = np.concatenate([np.asarray(m.background)[np.asarray(m.background_ok, bool)]
+                                 for m in maps]) / scale
     live_bg = sum(m.live_s for m in maps) / 3600.0
     live_data = live_bg / args.slides
     data_max = data_maxima(maps, snrs, sigmas, beam, data_scale)
-    inverted_max = np.concatenate([m.inverted for m in maps]) / data_scale
+    inverted_max = np.concatenate([m.inverted[m.inverted_ok] for m in maps]) / data_scale
     inverted_max = inverted_max[inverted_max >= 2.0]
     print(f"maps: {elapsed:.0f} s for {len(maps)} scans x (1 + {args.slides} slides); "
           f"Z spread: data {data_scale:.3f}, slides {scale:.3f} (ratio "

@@ -451,10 +451,14 @@ class TransientSignificance(_Preprocess):
     wafer-band-hour), a candidate above it is not ``detected`` by ``transient_fit``. See
     :mod:`so_transients.significance` and :mod:`so_transients.coherent`.
 
+    Both backgrounds' maxima are put to ``transient_find``'s chi-squared test (the settings
+    it stored with its candidates): a candidate whose own maximum passes it is ranked among
+    the background maxima that pass it, one that fails among all of them.
+
     Reads the scans ``transient_find`` searched (``aman.transient_scan``). In
-    ``aman.transient_candidates``: ``coherent_snr``, ``far``, ``far_slides``,
-    ``far_inverted`` (1/h), ``pass_far``; the
-    group's background live time and Z scale as ``significance_live_hours`` and
+    ``aman.transient_candidates``: ``coherent_snr``, ``coherent_chi2``,
+    ``coherent_consistent``, ``far``, ``far_slides``, ``far_inverted`` (1/h), ``pass_far``;
+    the group's background live time and Z scale as ``significance_live_hours`` and
     ``significance_z_scale``. Saved to the archive as ``proc_aman.transient_significance``
     (on the detector axis, keyed by ``cand_id``).
 

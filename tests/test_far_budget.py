@@ -228,3 +228,23 @@ def test_crossings_within_the_stacking_window_are_injected_as_one_window():
     assert [int(c.samples[0]) for c in crossings] == [3, 2003, 3003]
     assert sorted(r[1] for r in _stacked_runs(runs, window=3000)) == [0, 2000, 9000]  # 0 out
     assert _stacked_runs(runs[:1] + runs[3:], window=4100) == runs[:1] + runs[3:]
+
+
+def test_a_detection_failing_the_chi2_test_is_held_to_every_maximums_budget(tmp_path):
+    """Background maxima flagged by the chi-squared test: a detection that passes it is held
+    to the Z of the maxima that pass (lower), one that fails to the Z of all of them, and
+    the flags survive saving, tabling and pooling."""
+    b = _background()
+    b.slides_ok = b.slides < 4.5            # the slides' tail fails the test
+    b.inverted_ok = b.inverted < 4.5
+    path = tmp_path / "g" / "background.npz"
+    path.parent.mkdir()
+    save_background(b, path, "s")
+    pooled = pooled_backgrounds(*background_tables({Group("obs", "w0", "f090"): path.parent}))
+    z, _, z_failed = band_budgets(pooled)["f090"]
+    assert z < z_failed
+    assert z_failed == pytest.approx(_background().threshold(2 / 24))
+    table = Table({"band": ["f090"] * 2, "map_z": [(z + z_failed) / 2] * 2,
+                   "coherent_consistent": [True, False]})
+    margin = budget_margin(table, "band", {"f090": "map_z"}, band_budgets(pooled))
+    assert (margin >= 0).tolist() == [True, False]

@@ -19,6 +19,10 @@ tail is heavier: ``benchmarks/far_calibration.py`` finds ``far`` low by a factor
 at Z = 3.5-5, so read it as a lower bound. A candidate's ``far`` is the rate, per hour of
 this wafer-band, of background maxima at least as large as its Z.
 
+Every background maximum is also put to ``transient_find``'s chi-squared test
+(:mod:`so_transients.crossing_chi2`): a candidate whose own maximum passes it is ranked
+among the background maxima that pass it, one that fails among all of them.
+
 Only the cheap statistic is repeated: the slides reuse the filtered S/N, never the filter.
 """
 from __future__ import annotations
@@ -195,7 +199,8 @@ def candidate_statistic(maps: ScanMaps, bore_q, timestamps, ra, dec, t_cand, bea
 class Background:
     """A wafer-band's noise background of the coherent statistic Z, in units of the data
     map's measured spread: the time slides' maxima over ``slide_hours`` and the sign-inverted
-    data's maxima over ``data_hours`` (``scale``: the data map's spread, unnormalized)."""
+    data's maxima over ``data_hours`` (``scale``: the data map's spread, unnormalized), each
+    flagged by whether it passes the chi-squared test."""
 
     slides: np.ndarray
     slide_hours: float

@@ -6,6 +6,7 @@
     python benchmarks/bench_chain.py --json out.json  # also write the figures as JSON
     python benchmarks/bench_chain.py --significance-slides 20   # with transient_significance
     python benchmarks/bench_chain.py --find-mode coherent       # transient_find's coherent mode
+    python benchmarks/bench_chain.py --significance-slides 100 --slide-groups 0  # per detector
 
 Simulates the TOD (white noise, atmosphere, CMB, flares and glitches), loads it through its
 sotodlib Context, runs the standard steps of ``configs/preprocess_transients.yaml`` that come
@@ -63,12 +64,16 @@ def standard_steps():
     return steps[:[s["name"] for s in steps].index("transient_filter")]
 
 
-def pipeline_config(workers, significance_slides=0, find_mode="paper"):
+def pipeline_config(workers, significance_slides=0, find_mode="paper", slide_groups=None):
     """The transient steps (``transient_find`` in ``find_mode``); with
-    ``significance_slides``, transient_significance with that many time slides before
-    transient_fit (its cost is then printed against the floor)."""
-    extra = ([{"name": "transient_significance", "calc": {"n_slides": significance_slides},
-               "save": True}] if significance_slides else [])
+    ``significance_slides``, transient_significance with that many time slides (in
+    ``slide_groups`` groups; None: its default) before transient_fit (its cost is then
+    printed against the floor)."""
+    calc = {"n_slides": significance_slides}
+    if slide_groups is not None:
+        calc["slide_groups"] = slide_groups
+    extra = ([{"name": "transient_significance", "calc": calc, "save": True}]
+             if significance_slides else [])
     return [
         {"name": "transient_filter", "process": {"workers": workers}, "calc": True, "save": True},
         {"name": "transient_find", "calc": {"mode": find_mode}, "save": True},
@@ -113,14 +118,15 @@ def clear_outputs(aman):
         aman.move(name, None)
 
 
-def run_chain(aman, workers, significance_slides=0, find_mode="paper"):
+def run_chain(aman, workers, significance_slides=0, find_mode="paper", slide_groups=None):
     clear_outputs(aman)
     logger = logging.getLogger("bench_chain.pipeline")
     logger.setLevel(logging.DEBUG)
     logger.propagate = False
     clock = StepClock()
     logger.handlers = [clock]
-    pipe = Pipeline(pipeline_config(workers, significance_slides, find_mode), logger=logger)
+    pipe = Pipeline(pipeline_config(workers, significance_slides, find_mode, slide_groups),
+                    logger=logger)
     reset_peak_rss()
     start = time.perf_counter()
     proc = pipe.run(aman)
@@ -180,6 +186,8 @@ def main(argv=None):
     parser.add_argument("--json", metavar="PATH")
     parser.add_argument("--significance-slides", type=int, default=0, metavar="N",
                         help="also run transient_significance with N time slides")
+    parser.add_argument("--slide-groups", type=int, default=None, metavar="G",
+                        help="transient_significance's slide_groups (default: its own)")
     parser.add_argument("--find-mode", choices=("paper", "coherent"), default="paper",
                         help="transient_find's mode")
     parser.add_argument("--context", metavar="YAML",
@@ -200,12 +208,13 @@ def main(argv=None):
     signal_bytes = signal.nbytes
     chunk = FilterConfig().chunk_dets
     slides = args.significance_slides
-    run_chain(aman, args.workers, slides, args.find_mode)   # warm-up: numba, caches
+    run_chain(aman, args.workers, slides, args.find_mode, args.slide_groups)   # warm-up
     floors, chains, peaks = [], [], []
     for _ in range(args.repeats):
         floors.append(floor(signal, chunk))
         rss_before = rss("VmRSS")
-        steps, peak, proc = run_chain(aman, args.workers, slides, args.find_mode)
+        steps, peak, proc = run_chain(aman, args.workers, slides, args.find_mode,
+                                      args.slide_groups)
         chains.append(steps)
         peaks.append((peak, rss_before))
     cands = aman.transient_candidates

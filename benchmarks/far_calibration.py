@@ -2,6 +2,7 @@
 
     python benchmarks/far_calibration.py                 # 30 minutes of w16 at f090
     python benchmarks/far_calibration.py --minutes 60 --slides 20 --plot far.png
+    python benchmarks/far_calibration.py --slide-groups 0   # each detector slid on its own
 
 Simulates a noise-only observation (atmosphere, CMB, white noise, glitches), runs the shipped
 standard steps and ``transient_filter``, then for every scan computes the coherent statistic
@@ -137,6 +138,8 @@ def main(argv=None):
     parser.add_argument("--minutes", type=float, default=30.0)
     parser.add_argument("--slides", type=int, default=20)
     parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--slide-groups", type=int, default=SignificanceConfig.slide_groups,
+                        metavar="G", help="detectors slid alike in G groups (0: each alone)")
     parser.add_argument("--plot", metavar="PNG")
     args = parser.parse_args(argv)
     t0 = time.perf_counter()
@@ -144,7 +147,8 @@ def main(argv=None):
         aman = filtered_group(args.minutes, tmp, args.seed)
     print(f"simulated and filtered {aman.dets.count} x {aman.samps.count} in "
           f"{time.perf_counter() - t0:.0f} s", flush=True)
-    cfg = SignificanceConfig(n_slides=args.slides, background_floor=2.0, slide_floor=2.0)
+    cfg = SignificanceConfig(n_slides=args.slides, background_floor=2.0, slide_floor=2.0,
+                             slide_groups=args.slide_groups)
     t1 = time.perf_counter()
     maps, beam, snrs, sigmas = maps_of(aman, cfg)
     elapsed = time.perf_counter() - t1

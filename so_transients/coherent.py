@@ -108,18 +108,26 @@ def coherent_map(snr, geometry: CrossingGeometry, rows, beam_sigma, sigma_amp, l
     shifts = lags if offsets is None else lags + np.asarray(offsets, np.int64)
     acc = np.zeros((len(rows), nsamp), dtype)
     used = np.flatnonzero(np.any(weights != 0, axis=0))
-    _shift_add(snr, np.ascontiguousarray(weights, dtype), used, shifts.astype(np.int64), acc)
+    shift_add(snr, np.ascontiguousarray(weights, dtype), used, shifts.astype(np.int64), acc)
     norm = norm.astype(dtype)
     with np.errstate(invalid="ignore", divide="ignore"):
         flux = acc / (norm**2)[:, None] if with_flux else None
         acc /= norm[:, None]
     z = acc
     if offsets is None:      # positions whose crossing wraps around the ends are not real
-        lo = min(max(0, -lags.min()), nsamp)
-        hi = max(nsamp - max(0, lags.max()), lo)
         for out in (z, flux) if flux is not None else (z,):
-            out[:, :lo] = out[:, hi:] = np.nan
+            mask_wrapped(out, lags)
     return z, flux
+
+
+def mask_wrapped(z, lags):
+    """``z`` (rows x samples of a map) with NaN where a position's crossing, delayed by the
+    detectors' ``lags``, wraps around either end of the samples (in place; returned)."""
+    nsamp = z.shape[1]
+    lo = min(max(0, -np.min(lags)), nsamp)
+    hi = max(nsamp - max(0, np.max(lags)), lo)
+    z[:, :lo] = z[:, hi:] = np.nan
+    return z
 
 
 def finite_snr(snr):
@@ -135,7 +143,7 @@ SHIFT_ADD_BLOCK = 4096
 
 
 @njit(cache=True, nogil=True)
-def _shift_add(snr, weights, used, shifts, acc):
+def shift_add(snr, weights, used, shifts, acc):
     """``acc[r, t] += weights[r, d] * snr[d, (t + shifts[d]) % nsamp]`` over the detectors
     ``used`` and the rows where their weight is not 0 (``snr`` finite)."""
     nrow, nsamp = acc.shape
@@ -301,14 +309,16 @@ def _window_max(z, rows, samples, half_rows, half_samples, out):
                     out[k] = z[rr, tt]
 
 
-def time_slide_offsets(ndet, nsamp, min_shift, rng):
+def time_slide_offsets(ndet, nsamp, min_shift, rng, n_slides=None):
     """Random cyclic offsets (samples) per detector, each at least ``min_shift`` from 0
     modulo ``nsamp``: a real source no longer lines up across detectors, while each
-    detector's noise and glitches keep their statistics."""
+    detector's noise and glitches keep their statistics. (ndet,), or (n_slides, ndet) for
+    that many slides at once."""
     if nsamp <= 2 * min_shift:
         raise ValueError(f"a scan of {nsamp} samples is too short for time slides of at "
                          f"least {min_shift} samples")
-    return rng.integers(min_shift, nsamp - min_shift, size=ndet)
+    size = ndet if n_slides is None else (n_slides, ndet)
+    return rng.integers(min_shift, nsamp - min_shift, size=size)
 
 
 def false_alarm_rate(statistics, background, live_time_hours):

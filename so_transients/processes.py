@@ -439,7 +439,11 @@ class TransientSignificance(_Preprocess):
     crossing: every detector's filtered S/N at the time the position crosses it, weighted by
     the beam across the scan and its noise) is computed at every position the wafer sees, on
     the data and on ``n_slides`` time slides (each detector's S/N shifted cyclically within
-    the scan by its own random offset of at least ``min_slide_s``). Each candidate gets the
+    the scan by a random offset of at least ``min_slide_s``, alike for the detectors of one
+    of ``slide_groups`` random groups, so that the slides share the groups' partial maps;
+    the data's own maxima from ``slide_gate`` are gated out of what is slid first; see
+    :mod:`so_transients.slide_groups`; ``slide_groups: 0``: every detector its own
+    offset). Each candidate gets the
     highest Z near its position and crossing time, each map in units of its own measured
     spread, and two false-alarm rates per hour of this wafer-band: ``far_slides``, the slides'
     maxima at least as high (live time: ``n_slides`` x the time searched; the slides break
@@ -468,6 +472,9 @@ class TransientSignificance(_Preprocess):
         calc:
           n_slides: 100                   # background live time: 100 x the data's (0: none)
           min_slide_s: 2.0                # every detector shifted at least this far
+          slide_groups: 4                 # detectors slid alike in 4 random groups (0: each
+          #                                 its own offset, about 4x the cost)
+          slide_gate: 6.0                 # data maxima from this Z gated out of the slides
           row_step: 0.8                   # beam sigmas between rows of positions
           background_floor: 3.0           # background maxima counted from this Z
           slide_floor: 4.5                # slides' maxima from this Z (below: inverted data)

@@ -4,8 +4,11 @@ For each scan of each band of a group, the coherent statistic Z of every sky pos
 wafer crosses (:mod:`so_transients.coherent`) is computed on the filtered S/N as it is (the
 candidates' statistic: the highest Z within one row and ``peak_window`` beam-crossing times of
 the candidate's position and crossing time) and on ``n_slides`` time slides of it (each
-detector's stream shifted cyclically within the scan by its own random offset, at least
-``min_slide_s``: noise and glitches keep their statistics, a real source no longer lines up).
+detector's stream shifted cyclically within the scan by a random offset, at least
+``min_slide_s``, alike for the detectors of one of ``slide_groups`` random groups: noise and
+glitches keep their statistics, a real source no longer lines up; the groups let the slides
+share their sums, and the data's own maxima from ``slide_gate`` are gated out of what is
+slid, see :mod:`so_transients.slide_groups`).
 The slides' local maxima are the background (those one detector makes alone, more than
 ``max_single_share`` of their sum, are left out: a slide scatters a bright source's own
 spikes, and a glitch's, into such maxima); their live time is ``n_slides`` times the time
@@ -33,11 +36,13 @@ import numpy as np
 
 from . import pointing
 from .coherent import (CrossingGeometry, coherent_map, false_alarm_rate, finite_snr,
-                       largest_share, local_maxima, measured_scale, row_offsets, row_weights,
-                       time_slide_offsets, window_max)
+                       largest_share, local_maxima, mask_wrapped, measured_scale, row_offsets,
+                       row_weights, window_max)
 from .scan_geometry import drift_velocity
 from .scan_geometry import sample_rate as rate_of   # (``sample_rate`` names the Hz below)
 from .step_config import ConfigError, positive
+from .slide_groups import (gate_maxima, group_offsets, group_sum, min_group_samples,
+                           partial_maps, slide_groups)
 from .slide_maxima import SlideSearch
 from .coherent_peaks import Vetoes
 from .sweep_stack import (ScanMap, StackSettings, inverted_seeds, inverted_stacks, map_cell,
@@ -50,6 +55,10 @@ class SignificanceConfig:
     n_slides: int = 100              # time slides per scan: background live time / data's
     #                                  (0: none; far from the sign-inverted data alone)
     min_slide_s: float = 2.0         # every detector is shifted at least this far
+    slide_groups: int = 4            # detectors slid alike in this many random groups (0:
+    #                                  each its own offset, about 4x the cost at f090)
+    slide_gate: float = 6.0          # grouped slides: the data's maxima from this Z (real
+    #                                  sources) are gated out of what is slid
     row_step: float = 0.8            # beam sigmas between rows of positions
     background_floor: float = 3.0    # background maxima counted from this Z
     slide_floor: float = 4.5         # slides' maxima counted from this Z (below it, far
@@ -63,12 +72,15 @@ class SignificanceConfig:
     max_opposite_ratio: float = 2.0  # ... this many times higher are its filter sidelobe
 
     def __post_init__(self):
-        if self.n_slides < 0:
-            raise ConfigError(f"transient_significance: n_slides must be 0 or more, got "
-                              f"{self.n_slides}")
+        self.slide_groups = int(self.slide_groups)
+        for key in ("n_slides", "slide_groups"):
+            if getattr(self, key) < 0:
+                raise ConfigError(f"transient_significance: {key} must be 0 or more, got "
+                                  f"{getattr(self, key)}")
         positive("transient_significance", min_slide_s=self.min_slide_s, row_step=self.row_step,
                  background_floor=self.background_floor, slide_floor=self.slide_floor,
-                 peak_window=self.peak_window, max_far=self.max_far, tail_from=self.tail_from,
+                 slide_gate=self.slide_gate, peak_window=self.peak_window,
+                 max_far=self.max_far, tail_from=self.tail_from,
                  sidelobe_window=self.sidelobe_window,
                  max_opposite_ratio=self.max_opposite_ratio)
 
@@ -108,38 +120,88 @@ def scan_maps(snr, geometry, beam_sigma, sigma_amp, live, first, cfg: Significan
     """The data's map and the slides' background of one scan (``snr``: its samples), each
     background maximum flagged by ``transient_find``'s chi-squared test (``vetoes``)."""
     rows = row_offsets(geometry, beam_sigma, cfg.row_step)
-    snr = finite_snr(snr)                # once for the data's map and every slide's
-    # float32 sums: Z to 1e-6, 3x faster than float64 on the benchmark scans (its stacks
-    # are kept in float32)
-    z, _ = coherent_map(snr, geometry, rows, beam_sigma, sigma_amp, live, with_flux=False,
-                        finite=True, dtype=np.float32)
-    out = ScanMaps(first, geometry, rows, z, measured_scale(z))
+    given, snr = snr, finite_snr(snr)    # once for the data's map and every slide's
     nsamp = snr.shape[1]
     window = geometry.crossing_samples(beam_sigma)
+    min_shift = int(cfg.min_slide_s * geometry.sample_rate)
+    slides = cfg.n_slides > 0 and nsamp > 2 * min_shift + 1
+    slid = slide_groups(live, cfg.slide_groups, rng) if slides else None
+    if slid is not None and nsamp < min_group_samples(cfg.slide_groups, min_shift, window):
+        slid = None          # too short to keep the groups apart: each detector on its own
+    weights, norm = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
+    cyclic, partial = cyclic_map(snr, geometry, rows, beam_sigma, sigma_amp, live, weights,
+                                 norm, slid)
+    z = mask_wrapped(cyclic.copy(), geometry.lag_samples)
+    out = ScanMaps(first, geometry, rows, z, measured_scale(z))
     out.inverted, out.inverted_ok = inverted_maxima(z, snr, geometry, rows, beam_sigma,
                                                     sigma_amp, live, out.data_scale, window,
                                                     cfg, vetoes)
     out.data_live_s = np.isfinite(z[0]).sum() / geometry.sample_rate
-    min_shift = int(cfg.min_slide_s * geometry.sample_rate)
-    if nsamp <= 2 * min_shift + 1:
+    if not slides:
         return out
-    search = SlideSearch(snr, geometry, rows, beam_sigma, sigma_amp, live, window)
+    if slid is not None:
+        # (in place when finite_snr copied it: nothing else reads the ungated S/N)
+        snr = gated_sources(snr, partial, cyclic, geometry, rows, beam_sigma, sigma_amp, live,
+                            weights, slid, out.data_scale, window, cfg,
+                            in_place=snr is not given)
+    search = SlideSearch(snr, geometry, rows, beam_sigma, sigma_amp, live, window, slid,
+                         partial)
     groups = vetoes.groups(search.weights, geometry)
     floor = max(cfg.background_floor, cfg.slide_floor)
-    for _ in range(cfg.n_slides):
-        offsets = time_slide_offsets(snr.shape[0], nsamp, min_shift, rng)
+    chi2, z_norm, lags = [], [], geometry.lag_samples
+    for offsets in group_offsets(slid, snr.shape[0], nsamp, min_shift, rng, cfg.n_slides):
         r, s, peak, scale = search.maxima(offsets, floor)
+        out.slide_scale.append(scale)
+        out.live_s += nsamp / geometry.sample_rate
+        if not len(r):                       # most slides of a scan: nothing to select
+            continue
         # a slide moves a bright source's (or a glitch's) detector spikes apart: each makes
         # maxima of its own that no multi-detector candidate resembles; they are left out
         keep = search.largest_share(r, s, offsets) <= cfg.max_single_share
         r, s, peak = r[keep], s[keep], peak[keep]
-        chi2 = vetoes.chi2(snr, search.weights, geometry, geometry.lag_samples + offsets, r, s,
-                           groups=groups)
+        chi2.extend(vetoes.chi2(snr, search.weights, geometry, lags + offsets, r, s,
+                                groups=groups))
         out.background.extend(peak)
-        out.background_ok.extend(vetoes.consistent(chi2, peak / scale))
-        out.slide_scale.append(scale)
-        out.live_s += nsamp / geometry.sample_rate
+        z_norm.extend(peak / scale)          # each slide in units of its own spread
+    if out.background:       # the test's limits at once (their cost is per call)
+        out.background_ok = list(vetoes.consistent(chi2, np.array(z_norm)))
     return out
+
+
+def cyclic_map(snr, geometry, rows, beam_sigma, sigma_amp, live, weights, norm, slid):
+    """``(z, partial)``: the data's map (unnormalized Z, float32 sums: Z to 1e-6, 3x faster
+    than float64) summed cyclically, so that a source crossing at a scan end is on it (the
+    grouped slides' gate finds it there; the data's map proper is this with the wrapped
+    positions NaN), and, for slides in the groups ``slid``, the groups' partial maps whose
+    sum it is (None otherwise): the slides share them, so the data's map costs only their
+    sum."""
+    if slid is None:
+        z, _ = coherent_map(snr, geometry, rows, beam_sigma, sigma_amp, live,
+                            np.zeros(snr.shape[0], np.int64), with_flux=False, finite=True,
+                            dtype=np.float32)
+        return z, None
+    partial = partial_maps(snr, weights, geometry.lag_samples, slid)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = group_sum(partial, int(np.max(slid)) + 1) / norm.astype(np.float32)[:, None]
+    return z, partial
+
+
+def gated_sources(snr, partial, cyclic, geometry, rows, beam_sigma, sigma_amp, live, weights,
+                  slid, scale, window, cfg, in_place=False):
+    """``snr`` with the maxima of its cyclic map ``cyclic`` (a source crossing at a scan end
+    included) at least ``slide_gate`` x ``scale`` that many detectors make (real sources)
+    gated out, within ``sidelobe_window`` of their passage
+    (:func:`so_transients.slide_groups.gate_maxima`): what grouped slides slide. The
+    groups' ``partial`` maps are made those of the gated S/N (in place; ``snr`` too with
+    ``in_place``)."""
+    r, s = local_maxima(cyclic, cfg.slide_gate * scale, window)
+    share = largest_share(snr, geometry, rows, beam_sigma, sigma_amp, live, r, s)
+    keep = share <= cfg.max_single_share
+    if not keep.any():
+        return snr
+    half = int(round(cfg.sidelobe_window * geometry.sample_rate))
+    return gate_maxima(snr, weights, geometry.lag_samples, r[keep], s[keep], half, partial,
+                       slid, in_place)
 
 
 def inverted_maxima(z, snr, geometry, rows, beam_sigma, sigma_amp, live, scale, window, cfg,

@@ -7,10 +7,13 @@ first sums a coarse map (the screen), every other row and every ``step``-th samp
 multiply-adds, and fewer again: each row sums only the detectors within
 :data:`SCREEN_REACH` beam sigmas (99.6 % of its weight^2; the map's rows reach 3, half
 as many detectors again; a row that would keep less than :data:`SCREEN_KEEP` of it, beside
-dead detectors, sums as far as the map's), read as 16-bit integers in units of :data:`QUANTUM` (S/N to 0.002, half
-the bytes of float32; a spike beyond S/N 128 is clipped). A screen value is the full
-map's at its position to about 0.06 in Z. Around each coarse position at least
-:data:`REFINE` x the threshold it then sums the full map (exactly, as
+dead detectors, sums as far as the map's), read as 16-bit integers in units of
+:data:`QUANTUM` (S/N to 0.002, half the bytes of float32; a spike beyond S/N 128 is
+clipped). A screen value is the full map's at its position to about 0.06 in Z. With
+grouped slides (:mod:`so_transients.slide_groups`) the screen sums the groups' partial maps
+instead, every detector within the map's reach, each read as 16-bit integers in units of
+1/256 of its own spread (:func:`term_quanta`): the full map's value to 0.001 in Z. Around
+each coarse position at least :data:`REFINE` x the threshold it then sums the full map (exactly, as
 :func:`so_transients.coherent.coherent_map`), one row and ``step`` samples either side
 (the core) and, for the local-maximum test, the neighbourhood of the core; the maxima are
 those of the core, at the full map's values.
@@ -35,8 +38,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .coherent import (add_slice, coherent_map, is_top, local_maxima, measured_scale,
-                       row_members, row_weights, term_shares)
+from .coherent import (add_slice, is_top, local_maxima, measured_scale, row_members,
+                       row_weights, shift_add, term_shares)
+from .slide_groups import partial_maps
 
 #: Coarse positions at least this share of the threshold are refined.
 REFINE = 0.75
@@ -46,6 +50,8 @@ SCREEN_REACH = 2.0
 SCREEN_KEEP = 0.9
 #: The screen reads each detector's S/N as 16-bit integers in this unit.
 QUANTUM = 2.0**-8
+#: The screen adds its terms to this many columns of every row at a time.
+SCREEN_BLOCK = 1024
 #: Beyond this share of the map to refine, the whole map is summed instead: a refined
 #: position's detector samples are read from scattered addresses, 50-70x the cost of a
 #: position of the whole map's streamed sum (measured on the 20-minute benchmark scans).
@@ -54,28 +60,86 @@ MAX_REFINED = 0.01
 
 class SlideSearch:
     """The maxima of the time slides of one scan's S/N ``snr`` (finite, (ndet, nsamp)):
-    what every slide shares (weights, the coarse sampling's phases) is prepared once."""
+    what every slide shares (weights, the coarse sampling's phases) is prepared once.
 
-    def __init__(self, snr, geometry, rows, beam_sigma, sigma_amp, live, window):
+    ``groups`` (ndet,): slides shift the detectors of a group alike
+    (:mod:`so_transients.slide_groups`), and the search sums the groups' partial maps (its
+    terms) instead of the detectors; its screen then sums every detector within the map's
+    reach, each partial map read as 16-bit integers in units of 1/256 of its spread
+    (:func:`term_quanta`); ``partial``: those partial maps of ``snr`` when the caller has
+    them (:func:`so_transients.slide_groups.partial_maps`). ``None``: every detector is its
+    own term."""
+
+    def __init__(self, snr, geometry, rows, beam_sigma, sigma_amp, live, window, groups=None,
+                 partial=None):
         self.snr, self.geometry, self.rows, self.window = snr, geometry, rows, int(window)
-        self.args = (beam_sigma, sigma_amp, live)
+        self.lags = geometry.lag_samples
         self.weights, self.norm = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
-        self.indptr, self.members = row_members(self.weights)
-        self.weights32 = self.weights.astype(np.float32)
         self.norm32 = self.norm.astype(np.float32)
-        self.snr32 = np.asarray(snr, np.float32)
         # a slide's Z where it was summed: where ``stamp`` is +-the slide's number
         shape = (len(rows), snr.shape[1])
         self.z, self.stamp, self.slide = np.empty(shape, np.float32), np.zeros(shape, np.int32), 0
         self.step = geometry.crossing_samples(beam_sigma)
         self.scale = None          # the slides' measured spread (unnormalized Z)
-        self.phases = sample_phases(snr, self.step)
-        screen, norm = row_weights(geometry, rows, beam_sigma, sigma_amp, live, SCREEN_REACH)
+        self.groups = None if groups is None else np.asarray(groups)
+        if self.groups is None:
+            self._detector_terms(beam_sigma, sigma_amp, live)
+        else:
+            self._group_terms(partial)
+        self.indptr, self.members = row_members(self.term_weights)
+        self.detector_members = row_members(self.weights)
+        self.coarse_used = np.flatnonzero(np.any(self.coarse_weights != 0, axis=0))
+        # the screen sums of Z = 1 (inf on rows without detectors: no level reached)
+        self.coarse_levels = np.where(self.coarse_norm > 0, self.coarse_norm, np.inf)
+        self._screen = None
+
+    def _detector_terms(self, beam_sigma, sigma_amp, live):
+        """Every detector a term; the screen reads them as 16-bit integers, within
+        :data:`SCREEN_REACH`."""
+        self.terms, self.terms32 = self.snr, np.asarray(self.snr, np.float32)
+        self.term_weights = self.weights
+        self.weights32 = self.weights.astype(np.float32)
+        ndet = self.snr.shape[0]
+        self.phases = sample_phases(self.snr, self.step, np.full(ndet, QUANTUM),
+                                    np.arange(ndet))
+        self.screen_terms = np.arange(self.snr.shape[0])
+        screen, norm = row_weights(self.geometry, self.rows, beam_sigma, sigma_amp, live,
+                                   SCREEN_REACH)
         short = norm**2 < SCREEN_KEEP * self.norm**2
         screen[short], norm[short] = self.weights[short], self.norm[short]
         self.coarse_weights = np.ascontiguousarray(screen[::2] * QUANTUM, np.float32)
         self.coarse_norm = norm[::2].astype(np.float32)
-        self.coarse_used = np.flatnonzero(np.any(self.coarse_weights != 0, axis=0))
+
+    def _group_terms(self, partial=None):
+        """Each group's share of each row a term (row ``g * nrow + r``, its lags included);
+        the screen reads them as they are."""
+        nrow = len(self.rows)
+        self.terms = partial if partial is not None else partial_maps(
+            self.snr, self.weights, self.geometry.lag_samples, self.groups)
+        self.terms32 = self.terms
+        n_groups = self.terms.shape[0] // nrow
+        select = np.tile(np.eye(nrow, dtype=np.float32), (1, n_groups))   # row r: g*nrow + r
+        self.term_weights = self.weights32 = select
+        # the screen's rows are every other row: only their terms are read by it
+        self.screen_terms = np.flatnonzero(np.tile(np.arange(nrow) % 2 == 0, n_groups))
+        quantum = term_quanta(self.terms, self.screen_terms)
+        self.phases = sample_phases(self.terms, self.step, quantum, self.screen_terms)
+        self.coarse_weights = np.ascontiguousarray(select[::2][:, self.screen_terms]
+                                                   * quantum[None, :], np.float32)
+        self.coarse_norm = self.norm32[::2]
+        # a group's offset is read from one of its detectors
+        self.leaders = np.array([np.flatnonzero(self.groups == g)[0]
+                                 for g in range(n_groups)])
+        self.term_group = np.repeat(np.arange(n_groups), nrow)
+
+    def term_shifts(self, offsets):
+        """(nterm,) cyclic shifts (samples, in [0, nsamp)) of the terms in the slide
+        ``offsets`` (per detector; alike within a group)."""
+        nsamp = self.snr.shape[1]
+        offsets = np.asarray(offsets, np.int64)
+        if self.groups is None:
+            return (self.lags + offsets) % nsamp
+        return offsets[self.leaders][self.term_group] % nsamp
 
     def maxima(self, offsets, floor):
         """``(rows, samples, z, scale)``: the local maxima of the slide ``offsets``'s map
@@ -86,56 +150,114 @@ class SlideSearch:
         scan differ only in which noise samples line up, so their spread is the scan's,
         and one measurement of ~10^5 values, to about 0.5 %, sets every slide's
         threshold alike)."""
-        nsamp = self.snr.shape[1]
-        shifts = (self.geometry.lag_samples + np.asarray(offsets, np.int64)) % nsamp
-        coarse = self.coarse_map(shifts)
+        shifts = self.term_shifts(offsets)
+        acc = self.screen_sums(shifts)
         if self.scale is None:   # a slide's spread is the scan's: measured on the first
+            coarse = self.normalized(acc)
             self.scale = measured_scale(coarse, coarse.size)
         scale = self.scale
         threshold = floor * scale
-        fc, fr = np.nonzero(coarse.T >= REFINE * threshold)    # in time order: a peak's
-        #                                                   positions share detector samples
+        # in time order: a peak's positions share detector samples
+        fr, fc = _above(acc, (REFINE * threshold * self.coarse_levels).astype(np.float32))
         if len(fr) * 3 * (2 * self.step + 1) > MAX_REFINED * self.z.size:
-            z, _ = coherent_map(self.snr, self.geometry, self.rows, *self.args, offsets,
-                                with_flux=False, finite=True, dtype=np.float32)
+            z = self.full_map(shifts)
             r, s = local_maxima(z, threshold, self.window)
             return r, s, z[r, s], scale
         self.slide += 1          # (2^31 slides of one scan before it wraps)
-        r, s = _refined_maxima(self.snr32, self.weights32, self.indptr, self.members, shifts,
+        r, s = _refined_maxima(self.terms32, self.weights32, self.indptr, self.members, shifts,
                                self.norm32, fr, fc, self.step, self.window, self.z,
                                self.stamp, self.slide, np.float32(threshold))
         return r, s, self.z[r, s], scale
 
+    def full_map(self, shifts):
+        """The slide's whole map (unnormalized Z, float32 sums) from the terms' ``shifts``."""
+        acc = np.zeros(self.z.shape, np.float32)
+        used = np.flatnonzero(np.any(self.term_weights != 0, axis=0))
+        shift_add(self.terms, self.weights32, used, shifts, acc)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return acc / self.norm32[:, None]
+
     def largest_share(self, rows, samples, offsets):
         """:func:`so_transients.coherent.largest_share` of the slide ``offsets``'s map at
-        (``rows``, ``samples``)."""
-        shifts = self.geometry.lag_samples + np.asarray(offsets, np.int64)
-        return term_shares(self.snr, self.weights, (self.indptr, self.members), shifts, rows,
+        (``rows``, ``samples``): of its detectors, also when the slide moves groups."""
+        shifts = self.lags + np.asarray(offsets, np.int64)
+        return term_shares(self.snr, self.weights, self.detector_members, shifts, rows,
                            samples)
 
     def coarse_map(self, shifts):
         """The screen: Z on every other row and every ``step``-th sample (both from 0),
-        from the detectors' cyclic ``shifts`` (samples, in [0, nsamp))."""
-        acc = np.zeros((len(self.coarse_weights), self.phases.shape[2]), np.float32)
+        from the terms' cyclic ``shifts`` (samples, in [0, nsamp))."""
+        return self.normalized(self.screen_sums(shifts))
+
+    def screen_sums(self, shifts):
+        """The screen's sums before normalization (a buffer the next slide re-uses)."""
+        if self._screen is None:
+            self._screen = np.empty((len(self.coarse_weights), self.phases.shape[2]),
+                                    np.float32)
+        acc = self._screen
+        acc[:] = 0.0
         _coarse_shift_add(self.phases, self.snr.shape[1], self.coarse_weights,
-                          self.coarse_used, shifts, acc)
+                          self.coarse_used, np.asarray(shifts)[self.screen_terms], acc)
+        return acc
+
+    def normalized(self, acc):
+        """Screen sums ``acc`` in units of Z (NaN on rows without detectors)."""
         with np.errstate(invalid="ignore", divide="ignore"):
             return acc / self.coarse_norm[:, None]
 
 
+
+
 @njit(cache=True, nogil=True)
-def sample_phases(snr, step):
-    """``(step, ndet, ceil(nsamp / step))`` int16: ``out[p, d, j] = snr[d, j * step + p] /
-    QUANTUM`` rounded (0 past the end), so that every ``step``-th sample from any start is
-    contiguous; beyond +-32767 (S/N 128) clipped."""
-    ndet, nsamp = snr.shape
-    out = np.zeros((step, ndet, -(-nsamp // step)), np.int16)
-    for d in range(ndet):
+def sample_phases(snr, step, quantum, which):
+    """``(step, len(which), ceil(nsamp / step))`` int16: ``out[p, k, j] = snr[which[k], j *
+    step + p] / quantum[k]`` rounded (0 past the end), so that every ``step``-th sample from
+    any start is contiguous; beyond +-32767 quanta clipped."""
+    nsamp = snr.shape[1]
+    out = np.zeros((step, len(which), -(-nsamp // step)), np.int16)
+    for k in range(len(which)):
+        src, scale = snr[which[k]], 1.0 / quantum[k]
         for j in range(out.shape[2]):
             for p in range(min(step, nsamp - j * step)):
-                v = snr[d, j * step + p] * (1.0 / QUANTUM)
-                out[p, d, j] = np.rint(min(max(v, -32767.0), 32767.0))
+                v = src[j * step + p] * scale
+                out[p, k, j] = np.rint(min(max(v, -32767.0), 32767.0))
     return out
+
+
+def term_quanta(terms, which, n_values=1024) -> np.ndarray:
+    """(len(which),) the 16-bit screen's unit for each of the partial maps ``which``:
+    1/256 of its robust spread (from ``n_values`` evenly spaced samples, to about 5 %): a
+    partial map rounded to it is within 0.001 of its spread over a group; a value clipped
+    at 128 spreads (a glitch's) still makes its position's screen value far above any
+    threshold. 1 for a map of zeros."""
+    every = max(1, terms.shape[1] // n_values)
+    spread = 1.4826 * np.median(np.abs(terms[which, ::every]), axis=1)
+    return np.where(spread > 0, spread / 256.0, 1.0)
+
+
+@njit(cache=True, nogil=True)
+def _above(coarse, levels):
+    """``(rows, cols)`` of the screen's positions at least their row's ``levels``, column
+    by column (scanned row by row, 64 columns at a time, a block looked into only when it
+    holds one: the few found are then put in column order)."""
+    nrow, ncol = coarse.shape
+    rows, cols = np.empty(nrow * ncol, np.int64), np.empty(nrow * ncol, np.int64)
+    k = 0
+    for r in range(nrow):
+        level, row = levels[r], coarse[r]
+        for lo in range(0, ncol, 64):
+            hi = min(lo + 64, ncol)
+            n = 0
+            for j in range(lo, hi):           # (branch-free: vectorized)
+                n += row[j] >= level
+            if n == 0:
+                continue
+            for j in range(lo, hi):
+                if row[j] >= level:
+                    rows[k], cols[k] = r, j
+                    k += 1
+    order = np.argsort(cols[:k] * nrow + rows[:k])
+    return rows[:k][order], cols[:k][order]
 
 
 @njit(cache=True, nogil=True)

@@ -36,8 +36,8 @@ import numpy as np
 
 from . import pointing
 from .coherent import (CrossingGeometry, coherent_map, false_alarm_rate, finite_snr,
-                       largest_share, local_maxima, mask_wrapped, measured_scale, row_offsets,
-                       row_weights, window_max)
+                       largest_share, local_maxima, mask_wrapped, measured_scale, row_members,
+                       row_offsets, row_weights, term_shares, window_max)
 from .scan_geometry import drift_velocity
 from .scan_geometry import sample_rate as rate_of   # (``sample_rate`` names the Hz below)
 from .step_config import ConfigError, positive
@@ -141,9 +141,8 @@ def scan_maps(snr, geometry, beam_sigma, sigma_amp, live, first, cfg: Significan
         return out
     if slid is not None:
         # (in place when finite_snr copied it: nothing else reads the ungated S/N)
-        snr = gated_sources(snr, partial, cyclic, geometry, rows, beam_sigma, sigma_amp, live,
-                            weights, slid, out.data_scale, window, cfg,
-                            in_place=snr is not given)
+        snr = gated_sources(snr, partial, cyclic, geometry, weights, slid, out.data_scale,
+                            window, cfg, in_place=snr is not given)
     search = SlideSearch(snr, geometry, rows, beam_sigma, sigma_amp, live, window, slid,
                          partial)
     groups = vetoes.groups(search.weights, geometry)
@@ -186,8 +185,8 @@ def cyclic_map(snr, geometry, rows, beam_sigma, sigma_amp, live, weights, norm, 
     return z, partial
 
 
-def gated_sources(snr, partial, cyclic, geometry, rows, beam_sigma, sigma_amp, live, weights,
-                  slid, scale, window, cfg, in_place=False):
+def gated_sources(snr, partial, cyclic, geometry, weights, slid, scale, window, cfg,
+                  in_place=False):
     """``snr`` with the maxima of its cyclic map ``cyclic`` (a source crossing at a scan end
     included) at least ``slide_gate`` x ``scale`` that many detectors make (real sources)
     gated out, within ``sidelobe_window`` of their passage
@@ -195,7 +194,7 @@ def gated_sources(snr, partial, cyclic, geometry, rows, beam_sigma, sigma_amp, l
     groups' ``partial`` maps are made those of the gated S/N (in place; ``snr`` too with
     ``in_place``)."""
     r, s = local_maxima(cyclic, cfg.slide_gate * scale, window)
-    share = largest_share(snr, geometry, rows, beam_sigma, sigma_amp, live, r, s)
+    share = term_shares(snr, weights, row_members(weights), geometry.lag_samples, r, s)
     keep = share <= cfg.max_single_share
     if not keep.any():
         return snr

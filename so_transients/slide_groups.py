@@ -21,8 +21,9 @@ partial maps are corrected where those samples were. Noise reaches the gate a fe
 wafer-band-day (its maxima from Z = 6 are the paper's rate), each gate taking a second of
 about 150 detectors out of the slides; a single detector's spike, which the background
 must keep, is not gated. A group's noise keeps the correlations of its own detector pairs
-(``1 / G`` of them), which the slides' measured spread takes in. The groups' offsets are kept apart, by
-at least half of the scan's usable range over ``G``, so that no two groups line up again.
+(``1 / G`` of them), which the slides' measured spread takes in. The groups' offsets are
+kept apart, by at least half of the scan's usable range over ``G``, so that no two groups
+line up again.
 """
 from __future__ import annotations
 

@@ -13,10 +13,10 @@ clipped). A screen value is the full map's at its position to about 0.06 in Z. W
 grouped slides (:mod:`so_transients.slide_groups`) the screen sums the groups' partial maps
 instead, every detector within the map's reach, each read as 16-bit integers in units of
 1/256 of its own spread (:func:`term_quanta`): the full map's value to 0.001 in Z. Around
-each coarse position at least :data:`REFINE` x the threshold it then sums the full map (exactly, as
-:func:`so_transients.coherent.coherent_map`), one row and ``step`` samples either side
-(the core) and, for the local-maximum test, the neighbourhood of the core; the maxima are
-those of the core, at the full map's values.
+each coarse position at least :data:`REFINE` x the threshold it then sums the full map
+(exactly, as :func:`so_transients.coherent.coherent_map`), one row and ``step`` samples
+either side (the core) and, for the local-maximum test, the neighbourhood of the core; the
+maxima are those of the core, at the full map's values.
 
 A maximum at least the threshold is missed only when every coarse position within one row
 and ``step`` samples of it is below ``REFINE`` x the threshold. Z's response to a source and
@@ -50,8 +50,6 @@ SCREEN_REACH = 2.0
 SCREEN_KEEP = 0.9
 #: The screen reads each detector's S/N as 16-bit integers in this unit.
 QUANTUM = 2.0**-8
-#: The screen adds its terms to this many columns of every row at a time.
-SCREEN_BLOCK = 1024
 #: Beyond this share of the map to refine, the whole map is summed instead: a refined
 #: position's detector samples are read from scattered addresses, 50-70x the cost of a
 #: position of the whole map's streamed sum (measured on the 20-minute benchmark scans).
@@ -100,9 +98,9 @@ class SlideSearch:
         self.term_weights = self.weights
         self.weights32 = self.weights.astype(np.float32)
         ndet = self.snr.shape[0]
+        self.screen_terms = np.arange(ndet)
         self.phases = sample_phases(self.snr, self.step, np.full(ndet, QUANTUM),
-                                    np.arange(ndet))
-        self.screen_terms = np.arange(self.snr.shape[0])
+                                    self.screen_terms)
         screen, norm = row_weights(self.geometry, self.rows, beam_sigma, sigma_amp, live,
                                    SCREEN_REACH)
         short = norm**2 < SCREEN_KEEP * self.norm**2
@@ -115,7 +113,7 @@ class SlideSearch:
         the screen reads them as they are."""
         nrow = len(self.rows)
         self.terms = partial if partial is not None else partial_maps(
-            self.snr, self.weights, self.geometry.lag_samples, self.groups)
+            self.snr, self.weights, self.lags, self.groups)
         self.terms32 = self.terms
         n_groups = self.terms.shape[0] // nrow
         select = np.tile(np.eye(nrow, dtype=np.float32), (1, n_groups))   # row r: g*nrow + r
@@ -204,8 +202,6 @@ class SlideSearch:
         """Screen sums ``acc`` in units of Z (NaN on rows without detectors)."""
         with np.errstate(invalid="ignore", divide="ignore"):
             return acc / self.coarse_norm[:, None]
-
-
 
 
 @njit(cache=True, nogil=True)

@@ -13,11 +13,12 @@ wafer-band-hour; the paper's rate by default): by single crossings alone, and wi
 Candidates within the budget that match no flare are the false ones. Prints a table.
 
 ``--noise-only K`` checks the stacks' background instead, on K observations without flares:
-is a stack of the sign-inverted maps (``transient_significance``'s background of stacked
-candidates) as likely as a stack of the data? It counts, over the same hours, the data's
-stacked candidates (and those passing the cuts) and the inverted maps' stacks of each
-observation (as the step computes them, with its defaults) at Z >= z; then gives every data
-stack its ``far`` from the inverted stacks of all K observations pooled and from its own
+is a stack of the sign-inverted maps, or of the maps slid against each other
+(``transient_significance``'s two backgrounds of stacked candidates), as likely as a stack
+of the data? It counts, over the same hours, the data's stacked candidates (and those
+passing the cuts), the inverted maps' stacks and the slid stacks (``--slides`` slides, per
+data hour) of each observation (as the step computes them) at Z >= z; then gives every data
+stack its ``far`` from the backgrounds of all K observations pooled and from its own
 observation's alone (the step's ``far``), and counts those with ``far <= x`` against ``x``
 times the hours searched (stacks exist only from ``coherent_threshold`` up, so the count
 stops growing at the ``far`` of that Z, printed).
@@ -48,7 +49,7 @@ from so_transients.sim.config import SimConfig  # noqa: E402
 from so_transients.sim.simulate import simulate  # noqa: E402
 
 
-def pipe(window):
+def pipe(window, n_slides=20):
     """The shipped steps, transient_find in coherent mode with sweep stacking, the fit cut
     at S/N 3 (the budget decides), and transient_significance before the fit."""
     steps = apply_overrides(yaml.safe_load(TEMPLATE.read_text())["process_pipe"],
@@ -56,7 +57,7 @@ def pipe(window):
                                                          "stack_window": window}},
                              "transient_fit": {"calc": {"min_snr": 3.0}}})
     at = [s["name"] for s in steps].index("transient_fit")
-    steps.insert(at, {"name": "transient_significance", "calc": {"n_slides": 20}})
+    steps.insert(at, {"name": "transient_significance", "calc": {"n_slides": n_slides}})
     return steps
 
 
@@ -72,7 +73,7 @@ def search(flux, args, tmp, seed=None, n=None):
                    "t_rise": [args.t_rise, args.t_rise]}}), progress=False)
     ctx = core.Context(str(sim.context))
     aman = ctx.get_obs(sim.obs_ids[0], dets={"wafer_slot": "w16", "bandpass": "f090"})
-    Pipeline(pipe(args.window), logger=logging.getLogger("stack_gain")).run(aman)
+    Pipeline(pipe(args.window, args.slides), logger=logging.getLogger("stack_gain")).run(aman)
     return (candidates.from_aman(aman.transient_candidates, candidates.CAND_AXIS), sim.flares,
             aman)
 
@@ -90,9 +91,9 @@ def count(cands, flares, budget, stacks):
     return int(np.sum(np.any(near[within], axis=0))), int(np.sum(within & ~near.any(axis=1)))
 
 
-def inverted_stacks(aman, window):
-    """``(z, hours)``: the sign-inverted maps' stacks of a searched group and the time
-    searched, as ``transient_significance`` computes them (its defaults; no slides)."""
+def stack_background(aman, window, n_slides):
+    """The :class:`Background` of a searched group's stacks (the sign-inverted maps' and
+    ``n_slides`` slides'), as ``transient_significance`` computes it."""
     f = aman.transient_filter
     dets = np.flatnonzero(~np.asarray(f.dead, bool))
     t = np.asarray(aman.timestamps)
@@ -101,43 +102,55 @@ def inverted_stacks(aman, window):
         aman.transient_snr, dets, t, pointing.boresight_q(aman), xi[dets], eta[dets],
         np.asarray(aman[SCAN_FIELD]), np.asarray(f.sigma_amp)[dets],
         float(np.median(np.asarray(f.beam_sigma)[dets])), sample_rate(t),
-        SignificanceConfig(n_slides=0), FindConfig().vetoes,
+        SignificanceConfig(n_slides=n_slides), FindConfig().vetoes,
         stacking=FindConfig(mode="coherent", stack_window=window).stacking)
-    return background.stacks, background.data_hours
+    return background
 
 
 def noise_only(args):
     """The stacks' background on ``args.noise_only`` observations without flares."""
-    z, passed, own_far, inverted, hours = [], [], [], [], 0.0
+    z, passed, own_far, inverted, slid, hours, slid_hours = [], [], [], [], [], 0.0, 0.0
+    start = time.perf_counter()
     for k in range(args.noise_only):
         with tempfile.TemporaryDirectory() as tmp:
             cands, _, aman = search(0.0, args, tmp, seed=args.seed + 1000 + k, n=0)
-            stacks, h = inverted_stacks(aman, args.window)
+            b = stack_background(aman, args.window, args.slides)
         stacked = cands["n_crossings"] > 1
         z.extend(np.asarray(cands["coherent_snr"], float)[stacked])
         passed.extend(np.asarray(cands["passed"], bool)[stacked])
         own_far.extend(np.asarray(cands["far"], float)[stacked])
-        inverted.extend(stacks)
-        hours += h
-        print(f"observation {k}: {stacked.sum()} stacks, {len(stacks)} inverted stacks from "
-              f"Z = 3 in {h:.3f} h", flush=True)
-    z, passed, inverted = np.asarray(z), np.asarray(passed), np.asarray(inverted)
+        inverted.extend(b.stacks)
+        slid.extend(b.stack_slides)
+        hours += b.data_hours
+        slid_hours += b.stack_slide_hours
+        print(f"observation {k}: {stacked.sum()} stacks, {len(b.stacks)} inverted stacks from "
+              f"Z = 3 and {len(b.stack_slides)} slid stacks from Z = {b.slide_floor:g} in "
+              f"{b.data_hours:.3f} h ({(time.perf_counter() - start) / 60:.1f} min)",
+              flush=True)
+    z, passed = np.asarray(z), np.asarray(passed)
+    inverted, slid = np.asarray(inverted), np.asarray(slid)
+    per_hour = hours / slid_hours if slid_hours else np.nan
     print(f"\n{'Z >=':>6}{'data stacks':>13}{'passing cuts':>14}{'inverted stacks':>17}"
-          f"{'pull':>7}")
-    for level in (4.5, 5.0, 5.5, 6.0):
-        n, m = int(np.sum(z >= level)), int(np.sum(inverted >= level))
+          f"{'pull':>7}{'slid stacks':>13}{'x hours/slid':>14}{'pull':>7}")
+    for level in (4.5, 5.0, 5.5, 6.0, 6.5):
+        n, m, s = (int(np.sum(v >= level)) for v in (z, inverted, slid))
         pull = (n - m) / np.sqrt(n + m) if n + m else 0.0
+        # the slid count scaled to the data's hours has variance s x per_hour^2
+        scaled = s * per_hour
+        pull_slid = (n - scaled) / np.sqrt(max(n, 1) + s * per_hour**2)
         print(f"{level:>6.1f}{n:>13d}{int(np.sum(passed & (z >= level))):>14d}{m:>17d}"
-              f"{pull:>7.1f}")
-    pooled = Background(np.zeros(0), 0.0, np.zeros(0), hours, stacks=inverted)
-    far = pooled.stack_far(z)
+              f"{pull:>7.1f}{s:>13d}{scaled:>14.2f}{pull_slid:>7.1f}")
+    pooled = Background(np.zeros(0), 0.0, np.zeros(0), hours, stacks=inverted,
+                        stack_slides=slid, stack_slide_hours=slid_hours,
+                        slide_floor=SignificanceConfig.slide_floor)
+    far = pooled.stack_far(z)["far"]
     print(f"\n{'x (1/h)':>9}{'far <= x (pooled)':>19}{'(the step)':>12}{'x T':>8}")
     for x in (0.3, 1.0, 3.0, 10.0, 30.0):
         print(f"{x:>9g}{int(np.sum(far <= x)):>19d}{int(np.sum(np.asarray(own_far) <= x)):>12d}"
               f"{x * hours:>8.2f}")
     print(f"\n{hours:.2f} h searched of w16 at f090 without flares; stack_window "
           f"{args.window:g} s. Pooled, a stack at Z = 4.5 (the threshold) has far "
-          f"{pooled.stack_far(4.5)[0]:.2g} per wafer-band-hour: the counts stop growing there.")
+          f"{pooled.stack_far(4.5)['far'][0]:.2g} per wafer-band-hour: the counts stop growing there.")
     return 0
 
 
@@ -152,6 +165,8 @@ def main(argv=None):
     parser.add_argument("--budget", type=float, default=2 / 24,
                         help="max far per wafer-band-hour (default: the paper's rate)")
     parser.add_argument("--seed", type=int, default=50)
+    parser.add_argument("--slides", type=int, default=20,
+                        help="transient_significance's n_slides (slid stacks per data stack)")
     parser.add_argument("--noise-only", type=int, default=0, metavar="K",
                         help="check the stacks' far on K observations without flares instead")
     args = parser.parse_args(argv)

@@ -302,7 +302,8 @@ class TransientFind(_Preprocess):
     ``n_crossings`` > 1, whose hits are its strongest crossing's and whose ``t_start`` /
     ``t_stop`` span its crossings; ``transient_fit`` fits it with the position held on each
     crossing and combines the fluxes, and ``transient_significance`` gives it a ``far``
-    from stacks of the sign-inverted maps. The glitch vetoes (the chi-squared test asks
+    from stacks of the scans' maps slid against each other and of the sign-inverted maps.
+    The glitch vetoes (the chi-squared test asks
     whether the detectors' S/N are in the proportions a source crossing gives them;
     :mod:`so_transients.coherent_peaks`) and the stacking settings are kept in
     ``aman.transient_candidates`` for ``transient_significance``, which selects its
@@ -458,6 +459,11 @@ class TransientSignificance(_Preprocess):
     Both backgrounds' maxima are put to ``transient_find``'s chi-squared test (the settings
     it stored with its candidates): a candidate whose own maximum passes it is ranked among
     the background maxima that pass it, one that fails among all of them.
+
+    A sweep stack (``n_crossings`` > 1) is ranked among stacks, seeded and selected as
+    ``transient_find`` selects the data's: ``far_slides`` from ``n_slides`` stack slides
+    (each scan's map moved along the scan by its own random offset, the seed's held;
+    :mod:`so_transients.stack_slides`), ``far_inverted`` from the sign-inverted maps'.
 
     Reads the scans ``transient_find`` searched (``aman.transient_scan``). In
     ``aman.transient_candidates``: ``coherent_snr``, ``coherent_chi2``,

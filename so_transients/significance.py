@@ -26,6 +26,10 @@ Every background maximum is also put to ``transient_find``'s chi-squared test
 (:mod:`so_transients.crossing_chi2`): a candidate whose own maximum passes it is ranked
 among the background maxima that pass it, one that fails among all of them.
 
+A sweep stack (:mod:`so_transients.sweep_stack`) is ranked among stacks: the sign-inverted
+maps' stacks over the data's live time, and stack slides over ``n_slides`` times it (the
+scans' maps moved along their scans against each other, :mod:`so_transients.stack_slides`).
+
 Only the cheap statistic is repeated: the slides reuse the filtered S/N, never the filter.
 """
 from __future__ import annotations
@@ -45,7 +49,8 @@ from .slide_groups import (gate_maxima, group_offsets, group_sum, min_group_samp
                            partial_maps, slide_groups)
 from .slide_maxima import SlideSearch
 from .coherent_peaks import Vetoes
-from .sweep_stack import (ScanMap, StackSettings, inverted_seeds, inverted_stacks, map_cell,
+from .stack_slides import slid_stacks
+from .sweep_stack import (ScanMap, StackSettings, inverted_stacks, map_cell, map_seeds,
                           stack_at)
 from .tail_model import model_count_above
 
@@ -275,6 +280,8 @@ class Background:
     slide_floor: float | None = None  # the slides' from this one (None: ``floor``)
     stacks: np.ndarray | None = None  # Z of the inverted data's sweep stacks (None: no
     #                                   stacking), over ``data_hours``
+    stack_slides: np.ndarray | None = None  # Z of the slid sweep stacks from
+    stack_slide_hours: float = 0.0          # ``slide_floor``, over these hours
 
     def __post_init__(self):
         self.slide_floor = self.floor if self.slide_floor is None else float(self.slide_floor)
@@ -330,22 +337,31 @@ class Background:
         slides, inverted = np.where(finite, slides, np.nan), np.where(finite, inverted, np.nan)
         return dict(far=np.fmax(slides, inverted), far_slides=slides, far_inverted=inverted)
 
-    def stack_far(self, z) -> np.ndarray:
-        """``far`` (per hour of the wafer-band) of sweep stacks with statistics ``z``: the
-        inverted data's stacks at least as high, counted and beyond ``tail_from`` modelled
-        (NaN without stacking)."""
+    def stack_far(self, z) -> dict:
+        """``far``, ``far_slides`` and ``far_inverted`` (per hour of the wafer-band) of sweep
+        stacks with statistics ``z``, as :meth:`far` for single crossings: the slid stacks
+        at least as high (:mod:`so_transients.stack_slides`; NaN below the slides' floor or
+        without them) and the inverted data's stacks, counted and beyond ``tail_from``
+        modelled; ``far`` is the higher (all NaN without stacking)."""
         z = np.atleast_1d(np.asarray(z, float))
+        out = {k: np.full(z.shape, np.nan) for k in ("far", "far_slides", "far_inverted")}
         if self.stacks is None:
-            return np.full(z.shape, np.nan)
-        return np.where(np.isfinite(z), inverted_rate(z, self.stacks, self.data_hours,
-                                                      self.tail_from), np.nan)
+            return out
+        finite = np.isfinite(z)
+        out["far_inverted"] = np.where(finite, inverted_rate(z, self.stacks, self.data_hours,
+                                                             self.tail_from), np.nan)
+        if self.stack_slides is not None and self.stack_slide_hours > 0:
+            slides = false_alarm_rate(z, self.stack_slides, self.stack_slide_hours)
+            out["far_slides"] = np.where(finite & (z >= self.slide_floor), slides, np.nan)
+        out["far"] = np.fmax(out["far_slides"], out["far_inverted"])
+        return out
 
     def threshold(self, rate, step=0.005, top=30.0, stacked=False, consistent=True) -> float:
         """The lowest Z (to ``step``) whose ``far`` (``stacked``: a sweep stack's;
         ``consistent``: of a maximum passing the chi-squared test) is at most ``rate`` (NaN
         when no Z up to ``top`` reaches it, e.g. slides too short to resolve it)."""
         grid = np.arange(self.floor, top, step)
-        far = self.stack_far(grid) if stacked else self.far(grid, consistent)["far"]
+        far = (self.stack_far if stacked else lambda z: self.far(z, consistent))(grid)["far"]
         ok = np.flatnonzero(far <= rate)
         return float(grid[ok[0]]) if len(ok) else np.nan
 
@@ -369,7 +385,7 @@ def band_background(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp, bea
     :class:`ScanMaps` and S/N while its data map is held."""
     live = np.ones(len(dets), bool)
     rng = np.random.default_rng(cfg.seed)
-    scans, stack_maps, seeds = [], [], []
+    scans, stack_maps, seeds, data_seeds = [], [], [], []
     for s in np.unique(scan[scan >= 0]):
         samples = np.flatnonzero(scan == s)
         geometry = scan_geometry(timestamps, bore_q, xi, eta, samples, sample_rate)
@@ -380,14 +396,21 @@ def band_background(snr, dets, timestamps, bore_q, xi, eta, scan, sigma_amp, bea
             visit(s, maps, block)
         if stacking is not None:
             stack_maps.append(stack_map(s, maps, beam_sigma, sigma_amp, live, timestamps))
-            seeds += inverted_seeds(block, stack_maps[-1], beam_sigma, sigma_amp, live, bore_q,
-                                    cfg.row_step, stacking, vetoes)
+            for sign, found in ((-1.0, seeds), (1.0, data_seeds)):
+                found += map_seeds(block, stack_maps[-1], beam_sigma, sigma_amp, live, bore_q,
+                                   cfg.row_step, stacking, vetoes, sign)
         maps.z = None                        # only the background is kept
         scans.append(maps)
     background = Background.from_scans(scans, cfg)
     if stacking is not None:
         background.stacks = inverted_stacks(stack_maps, seeds, bore_q, timestamps, beam_sigma,
                                             cfg.row_step, stacking, cfg.background_floor)
+        min_shift = int(cfg.min_slide_s * sample_rate)
+        background.stack_slides = slid_stacks(stack_maps, data_seeds, bore_q, timestamps,
+                                              beam_sigma, cfg.row_step, stacking,
+                                              background.slide_floor, cfg.n_slides, min_shift,
+                                              rng)
+        background.stack_slide_hours = cfg.n_slides * background.data_hours
     return background, stack_maps
 
 
@@ -449,10 +472,10 @@ def stack_map(s, maps: ScanMaps, beam_sigma, sigma_amp, live, timestamps) -> Sca
 
 def stack_significance(maps, cands, stacked, bore_q, beam_sigma, background: Background,
                        cfg) -> dict:
-    """``coherent_snr`` and ``far`` of the sweep stacks among ``cands`` (``stacked``): the
-    stacked Z over the crossings between their ``t_start`` and ``t_stop``, and
-    :meth:`Background.stack_far`, the sign-inverted maps' stacks at least as high; time
-    slides are not stacked (``far_slides`` NaN)."""
+    """``coherent_snr``, ``far``, ``far_slides`` and ``far_inverted`` of the sweep stacks
+    among ``cands`` (``stacked``): the stacked Z over the crossings between their
+    ``t_start`` and ``t_stop``, and :meth:`Background.stack_far`, the slid and the
+    sign-inverted maps' stacks at least as high."""
     reach = cfg.row_step * beam_sigma
     z = []
     for c in np.flatnonzero(stacked):
@@ -460,8 +483,7 @@ def stack_significance(maps, cands, stacked, bore_q, beam_sigma, background: Bac
                        cands["t_start"][c] - 1.0, cands["t_stop"][c] + 1.0, reach)
         z.append(np.nan if res is None else res["z"])
     z = np.asarray(z, float)
-    far = background.stack_far(z)
-    return dict(coherent_snr=z, far=far, far_inverted=far, far_slides=np.full(len(z), np.nan))
+    return dict(coherent_snr=z, **background.stack_far(z))
 
 
 def significance_by_band(snr, timestamps, bore_q, xi, eta, scan, sigma_amp, live, beam_sigma,

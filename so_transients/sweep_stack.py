@@ -101,9 +101,10 @@ def map_cell(geometry, rows, first, bore_q, ra, dec, sample):
     return int(np.argmin(np.abs(rows - across))), t0, float(across)
 
 
-def crossing_of(m: ScanMap, bore_q, ra, dec, row_reach):
-    """The :class:`Crossing` of (ra, dec) in the map ``m``, or None when its path misses the
-    map (further than ``row_reach`` rad from every row, or reaching past a scan end)."""
+def crossing_cell(m: ScanMap, bore_q, ra, dec, row_reach):
+    """``(row, t0)`` of (ra, dec) on the map ``m`` (:func:`map_cell`), or None when its path
+    misses the map (further than ``row_reach`` rad from every row, or reaching past a scan
+    end)."""
     nsamp = m.z.shape[1]
     sample = m.first + nsamp // 2
     for _ in range(2):         # from the scan's middle, then from the crossing found
@@ -111,10 +112,18 @@ def crossing_of(m: ScanMap, bore_q, ra, dec, row_reach):
         if not 0 <= t0 < nsamp:
             return None
         sample = m.first + t0
-    z = m.z[row, t0]
-    if abs(m.rows[row] - across) > row_reach or not np.isfinite(z):
+    return None if abs(m.rows[row] - across) > row_reach else (row, t0)
+
+
+def crossing_of(m: ScanMap, bore_q, ra, dec, row_reach):
+    """The :class:`Crossing` of (ra, dec) in the map ``m``, or None when its path misses the
+    map (:func:`crossing_cell`) or the map has no value there."""
+    cell = crossing_cell(m, bore_q, ra, dec, row_reach)
+    if cell is None or not np.isfinite(m.z[cell]):
         return None
-    return Crossing(m.scan, sample, row, float(z), float(m.flux[row, t0]), float(m.n[row]))
+    row, t0 = cell
+    return Crossing(m.scan, m.first + t0, row, float(m.z[row, t0]), float(m.flux[row, t0]),
+                    float(m.n[row]))
 
 
 def stack(crossings) -> dict:
@@ -158,15 +167,16 @@ def stack_seeds(maps, seeds, bore_q, timestamps, beam_sigma, row_step, window_s,
     return suppress(found, timestamps, 2.0 * beam_sigma)
 
 
-def inverted_seeds(snr, m: ScanMap, beam_sigma, sigma_amp, live, bore_q, row_step,
-                   settings: StackSettings, vetoes):
-    """Seeds ``(scan, sample, ra, dec)`` of the sign-inverted map of ``m`` (``snr``: its
-    scan's S/N; ``m.z``: the data's map) as ``transient_find`` seeds the data's stacks: its
-    maxima from ``stack_seed``, the strongest of neighbours, that no glitch veto
-    (``vetoes``, :class:`so_transients.coherent_peaks.Vetoes`) removes."""
+def map_seeds(snr, m: ScanMap, beam_sigma, sigma_amp, live, bore_q, row_step,
+              settings: StackSettings, vetoes, sign=1.0):
+    """Seeds ``(scan, sample, ra, dec)`` of the map of ``m`` (``snr``: its scan's S/N;
+    ``m.z``: the data's map; ``sign=-1``: of the sign-inverted data) as ``transient_find``
+    seeds the data's stacks: its maxima from ``stack_seed``, the strongest of neighbours,
+    that no glitch veto (``vetoes``, :class:`so_transients.coherent_peaks.Vetoes`)
+    removes."""
     weights, _ = row_weights(m.geometry, m.rows, beam_sigma, sigma_amp, live)
-    r, s = peaks(snr, m.geometry, -m.z, weights, beam_sigma, settings.stack_seed, row_step,
-                 vetoes, sign=-1.0)
+    r, s = peaks(snr, m.geometry, sign * m.z, weights, beam_sigma, settings.stack_seed,
+                 row_step, vetoes, sign=sign)
     return [(m.scan, m.first + int(t), *sky_position(m.geometry, m.rows[row], bore_q,
                                                      m.first + int(t)))
             for row, t in zip(r, s)]
@@ -176,7 +186,7 @@ def inverted_stacks(maps, seeds, bore_q, timestamps, beam_sigma, row_step,
                     settings: StackSettings, floor):
     """Z of the stacks of the sign-inverted ``maps`` (every correlation between detectors
     and sweeps kept, no source) from ``floor`` up, from their ``seeds``
-    (:func:`inverted_seeds`) and selected as the data's are: the background of stacked
+    (:func:`map_seeds` with ``sign=-1``) and selected as the data's are: the background of stacked
     candidates over the maps' live time."""
     flipped = [ScanMap(m.scan, m.first, m.geometry, m.rows, -m.z, -m.flux, m.n, m.t_lo,
                        m.t_hi) for m in maps]

@@ -164,6 +164,9 @@ def _stacking_background(seed=1):
     Gaussian-like tail, 100 per hour above Z = 3."""
     b = _background(seed=seed)
     b.stacks = _gaussian_maxima(b.data_hours, 100, np.random.default_rng(seed + 10))
+    b.stack_slide_hours = 20 * b.data_hours
+    slid = _gaussian_maxima(b.stack_slide_hours, 100, np.random.default_rng(seed + 20))
+    b.stack_slides = slid[slid >= b.slide_floor]
     return b
 
 
@@ -178,7 +181,7 @@ def test_stacks_get_their_own_budget_and_half_the_rate_each(tmp_path):
     assert budget["z_budget"] > b.threshold(2 / 24)
     # the stacks' budget: where their own far (inverted stacks, tail model) reaches it
     z_stack = budget["z_stack_budget"]
-    assert b.stack_far(z_stack)[0] <= 1 / 24 < b.stack_far(z_stack - 0.01)[0]
+    assert b.stack_far(z_stack)["far"][0] <= 1 / 24 < b.stack_far(z_stack - 0.01)["far"][0]
     assert budget["n_stack_maxima"] == len(b.stacks)
     # saved, loaded and pooled with the stacks (and without: None, no stack budget)
     folders = {}
@@ -186,11 +189,15 @@ def test_stacks_get_their_own_budget_and_half_the_rate_each(tmp_path):
         (tmp_path / f"g{k}").mkdir()
         save_background(part, tmp_path / f"g{k}" / "background.npz", "s")
         folders[Group("obs", f"w{k}", "f090" if k == 0 else "f150")] = tmp_path / f"g{k}"
-    assert np.array_equal(load_background(tmp_path / "g0" / "background.npz")[0].stacks,
-                          b.stacks)
+    loaded = load_background(tmp_path / "g0" / "background.npz")[0]
+    assert np.array_equal(loaded.stacks, b.stacks)
+    assert np.array_equal(loaded.stack_slides, b.stack_slides)
+    assert loaded.stack_slide_hours == b.stack_slide_hours
     pooled = pooled_backgrounds(*background_tables(folders))
     assert np.array_equal(np.sort(pooled["f090"].stacks), np.sort(b.stacks))
-    assert pooled["f150"].stacks is None and np.isnan(pooled["f150"].stack_far(5.0)[0])
+    assert np.array_equal(np.sort(pooled["f090"].stack_slides), np.sort(b.stack_slides))
+    assert pooled["f090"].stack_slide_hours == pytest.approx(b.stack_slide_hours)
+    assert pooled["f150"].stacks is None and np.isnan(pooled["f150"].stack_far(5.0)["far"][0])
 
 
 def test_each_detection_is_held_to_its_own_budget():
@@ -205,7 +212,7 @@ def test_each_detection_is_held_to_its_own_budget():
     margin = budget_margin(table, "band", {"f090": "map_z"}, band_budgets(b))
     assert (margin >= 0).tolist() == [z == low, z_stack == low]
     far = noise_far(b, table)
-    assert far["far"][1] == pytest.approx(b["f090"].stack_far(high - 0.01)[0])
+    assert far["far"][1] == pytest.approx(b["f090"].stack_far(high - 0.01)["far"][0])
     assert far["far"][0] == pytest.approx(b["f090"].far(high - 0.01)["far"][0])
 
 
@@ -248,3 +255,19 @@ def test_a_detection_failing_the_chi2_test_is_held_to_every_maximums_budget(tmp_
                    "coherent_consistent": [True, False]})
     margin = budget_margin(table, "band", {"f090": "map_z"}, band_budgets(pooled))
     assert (margin >= 0).tolist() == [True, False]
+
+
+def test_a_stacks_far_is_the_higher_of_its_slides_and_the_inverted_stacks():
+    """Slid stacks count from the slides' floor over their own hours (an empty count gets
+    half of one per live time); the inverted stacks over the data's; far is the higher."""
+    b = Background(np.zeros(0), 0.0, np.zeros(0), 1.0, tail_from=None, slide_floor=4.5,
+                   stacks=np.array([3.2, 4.0, 5.0]),
+                   stack_slides=np.array([4.6, 4.8, 5.5, 6.0]), stack_slide_hours=20.0)
+    far = b.stack_far([4.0, 4.7, 5.6, 7.0, np.nan])
+    assert np.allclose(far["far_inverted"], [2.0, 1.0, 0.0, 0.0, np.nan], equal_nan=True)
+    assert np.allclose(far["far_slides"], [np.nan, 3 / 20, 1 / 20, 0.5 / 20, np.nan],
+                       equal_nan=True)
+    assert np.allclose(far["far"], [2.0, 1.0, 1 / 20, 0.5 / 20, np.nan], equal_nan=True)
+    # without stacking every rate is NaN
+    plain = Background(np.zeros(0), 0.0, np.zeros(0), 1.0)
+    assert all(np.isnan(v).all() for v in plain.stack_far([5.0]).values())

@@ -25,9 +25,9 @@ map), the background in units of the group's median spread; the two agree to the
 spread varies between scans.
 
 With sweep stacking (``transient_find``'s ``stack_window``), a stacked detection
-(``n_crossings`` > 1) has its own background, the sign-inverted maps' stacks of the
-noise-only groups (``transient_significance``'s, :func:`so_transients.significance.band_background`),
-and its own budget ``z_stack_budget``; single crossings and stacks each get half of the
+(``n_crossings`` > 1) has its own background, the slid and the sign-inverted maps' stacks
+of the noise-only groups (``transient_significance``'s,
+:func:`so_transients.significance.band_background`), and its own budget ``z_stack_budget``; single crossings and stacks each get half of the
 paper's rate, so that together they keep to it.
 """
 from __future__ import annotations
@@ -48,7 +48,7 @@ from .search_steps import step_settings
 
 log = logging.getLogger(__name__)
 LIVE_COLUMNS = ("band", "obs_id", "wafer_slot", "slide_hours", "data_hours", "scale",
-                "tail_from", "floor", "slide_floor", "stacked")
+                "tail_from", "floor", "slide_floor", "stacked", "stack_slide_hours")
 
 
 def group_background(state, search_steps, cfg: SignificanceConfig) -> Background:
@@ -72,13 +72,16 @@ def group_background(state, search_steps, cfg: SignificanceConfig) -> Background
 
 
 def save_background(background: Background, path, stamp):
-    stacks = {} if background.stacks is None else {"stacks": background.stacks}
+    stacks = {k: getattr(background, k) for k in ("stacks", "stack_slides")
+              if getattr(background, k) is not None}
     np.savez(path, slides=background.slides, inverted=background.inverted, **stacks,
              slides_ok=background.slides_ok, inverted_ok=background.inverted_ok,
              live=json.dumps(dict(slide_hours=background.slide_hours,
                                   data_hours=background.data_hours, scale=background.scale,
                                   tail_from=background.tail_from, floor=background.floor,
-                                  slide_floor=background.slide_floor, stamp=stamp)))
+                                  slide_floor=background.slide_floor,
+                                  stack_slide_hours=background.stack_slide_hours,
+                                  stamp=stamp)))
 
 
 def load_background(path) -> tuple:
@@ -86,7 +89,8 @@ def load_background(path) -> tuple:
     saved = np.load(path)
     live = json.loads(str(saved["live"]))
     stamp = live.pop("stamp")
-    optional = {k: saved[k] for k in ("stacks", "slides_ok", "inverted_ok") if k in saved.files}
+    optional = {k: saved[k] for k in ("stacks", "stack_slides", "slides_ok", "inverted_ok")
+                if k in saved.files}
     return Background(saved["slides"], inverted=saved["inverted"], **optional, **live), stamp
 
 
@@ -97,7 +101,7 @@ def background_done(folder, stamp) -> bool:
 
 def background_tables(folders: dict):
     """``(maxima, live)``: every group's background maxima (``band``, ``kind``: slides,
-    inverted or stacks, ``z``, ``consistent``: it passes the chi-squared test) and live
+    inverted, stacks or stack_slides, ``z``, ``consistent``: it passes the chi-squared test) and live
     times (:data:`LIVE_COLUMNS`), for the groups that have one."""
     maxima, live = [], []
     for group, folder in folders.items():
@@ -106,18 +110,22 @@ def background_tables(folders: dict):
             continue
         b, _ = load_background(path)
         stacks = () if b.stacks is None else b.stacks
+        stack_slides = () if b.stack_slides is None else b.stack_slides
         for kind, z, ok in (("slides", b.slides, b.slides_ok),
                             ("inverted", b.inverted, b.inverted_ok),
-                            ("stacks", stacks, np.ones(len(stacks), bool))):
+                            ("stacks", stacks, np.ones(len(stacks), bool)),
+                            ("stack_slides", stack_slides, np.ones(len(stack_slides), bool))):
             maxima += [(group.band, kind, float(v), bool(k)) for v, k in zip(z, ok)]
         live.append((group.band, group.obs_id, group.wafer, b.slide_hours, b.data_hours,
                      b.scale, np.nan if b.tail_from is None else b.tail_from, b.floor,
-                     b.slide_floor, b.stacks is not None))
+                     b.slide_floor, b.stacks is not None, b.stack_slide_hours))
     maxima = Table(rows=maxima or None, names=("band", "kind", "z", "consistent"),
-                   dtype=("U8", "U8", float, bool))
+                   dtype=("U8", "U12", float, bool))
     live = Table(rows=live or None, names=LIVE_COLUMNS,
-                 dtype=("U8", "U64", "U8", float, float, float, float, float, float, bool))
-    live["slide_hours"].unit = live["data_hours"].unit = u.hour
+                 dtype=("U8", "U64", "U8", float, float, float, float, float, float, bool,
+                        float))
+    for name in ("slide_hours", "data_hours", "stack_slide_hours"):
+        live[name].unit = u.hour
     return maxima, live
 
 
@@ -131,14 +139,17 @@ def pooled_backgrounds(maxima: Table, live: Table) -> dict:
         ok = (np.asarray(mine["consistent"], bool) if "consistent" in mine.colnames
               else np.ones(len(mine), bool))
         slides, inverted = mine["kind"] == "slides", mine["kind"] == "inverted"
+        stacked = "stacked" in rows.colnames and np.any(rows["stacked"])
+        slid = stacked and "stack_slide_hours" in rows.colnames
         out[band] = Background(
             np.asarray(mine["z"][slides], float), float(np.sum(rows["slide_hours"])),
             np.asarray(mine["z"][inverted], float), float(np.sum(rows["data_hours"])),
             ok[slides], ok[inverted], np.nan,
             None if not np.isfinite(tail) else tail, float(rows["floor"][0]),
             float(np.max(rows["slide_floor"])) if "slide_floor" in rows.colnames else None,
-            np.asarray(mine["z"][mine["kind"] == "stacks"], float)
-            if "stacked" in rows.colnames and np.any(rows["stacked"]) else None)
+            np.asarray(mine["z"][mine["kind"] == "stacks"], float) if stacked else None,
+            np.asarray(mine["z"][mine["kind"] == "stack_slides"], float) if slid else None,
+            float(np.sum(rows["stack_slide_hours"])) if slid else 0.0)
     return out
 
 
@@ -272,7 +283,7 @@ def noise_far(backgrounds: dict, fitted_noise: Table, statistics: dict | None = 
         z = np.asarray(out["z"], float)
         single = sel & ~stacked
         far[single] = b.far(z[single], _consistent(fitted_noise)[keep][single])["far"]
-        far[sel & stacked] = b.stack_far(z[sel & stacked])
+        far[sel & stacked] = b.stack_far(z[sel & stacked])["far"]
     out["far"] = far * (1 / u.hour)
     return out
 

@@ -74,6 +74,15 @@ def source_in_focal_plane(bore_q, ra, dec):
     return np.asarray(xi), np.asarray(eta)
 
 
+def sources_in_focal_plane(bore_q, ra, dec):
+    """Focal-plane positions (xi, eta) of the sky positions ``ra[i]``, ``dec[i]``, each at
+    its own boresight ``bore_q[i]`` (one sample per position)."""
+    q_src = quat.rotation_lonlat(np.asarray(ra, float), np.asarray(dec, float))
+    rel = ~quat.G3VectorQuat(np.ascontiguousarray(bore_q)) * q_src
+    xi, eta, _ = quat.decompose_xieta(rel)
+    return np.asarray(xi), np.asarray(eta)
+
+
 def source_near(bore_q, ra, dec, center, reach, stride=16):
     """Samples where a fixed sky position lies within ``reach`` (radians) of ``center`` (xi, eta)
     in the focal plane, and its (xi, eta) there: ``(samples, xi, eta)``.

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .angles import sky_separation
-from .sweep_stack import StackSettings, crossing_cell
+from .sweep_stack import StackSettings, crossing_cells
 
 
 @dataclass
@@ -49,26 +49,29 @@ def seed_cells(maps, seeds, bore_q, timestamps, row_reach, window_s) -> SeedCell
     """The :class:`SeedCells` of ``seeds`` (``(scan, sample, ra, dec)``) on the ``maps``
     within ``window_s`` centred on each: seeds whose own crossing is off their map, or that
     cross no other map, are left out."""
-    starts, keep, entries = [], [], []
-    for i, (scan, sample, ra, dec) in enumerate(seeds):
-        t = timestamps[sample]
-        mine = []
-        for j, m in enumerate(maps):
-            if m.t_hi >= t - window_s / 2 and m.t_lo <= t + window_s / 2:
-                cell = crossing_cell(m, bore_q, ra, dec, row_reach)
-                if cell is not None:
-                    mine.append((j, *cell, m.scan == scan, m.n[cell[0]]))
-        held = [e for e in mine if e[3]]
-        if len(mine) < 2 or not held or not np.isfinite(maps[held[0][0]].z[held[0][1:3]]):
-            continue
-        starts.append(len(entries))
-        keep.append(i)
-        entries += mine
-    seeds = np.array([seeds[i] for i in keep], float).reshape(-1, 4)
-    e = np.array(entries, float).reshape(-1, 5)
-    return SeedCells(np.array(starts, np.int64), seeds[:, 0].astype(int), seeds[:, 2],
-                     seeds[:, 3], e[:, 0].astype(np.int64), e[:, 1].astype(np.int64),
-                     e[:, 2].astype(np.int64), e[:, 3].astype(bool), e[:, 4])
+    seeds = np.array(seeds, float).reshape(-1, 4)
+    scan, ra, dec = seeds[:, 0].astype(int), seeds[:, 2], seeds[:, 3]
+    t = timestamps[seeds[:, 1].astype(np.int64)]
+    parts = []                 # (seed, map, row, t0, held, n) of each map's crossings
+    for j, m in enumerate(maps):
+        near = np.flatnonzero((m.t_hi >= t - window_s / 2) & (m.t_lo <= t + window_s / 2))
+        row, t0, ok = crossing_cells(m, bore_q, ra[near], dec[near], row_reach)
+        held = scan[near] == m.scan
+        ok &= ~held | np.isfinite(m.z[row, t0])     # a seed's own value is read as it is
+        parts.append((near[ok], np.full(ok.sum(), j), row[ok], t0[ok], held[ok],
+                      m.n[row[ok]]))
+    seed, index, row, t0, held, n = (np.concatenate([p[k] for p in parts] or [[]])
+                                     for k in range(6))
+    order = np.argsort(seed, kind="stable")
+    seed, index, row, t0, held, n = (a[order] for a in (seed, index, row, t0, held, n))
+    count = np.bincount(seed.astype(np.int64), minlength=len(seeds))
+    has_own = np.bincount(seed.astype(np.int64), weights=held, minlength=len(seeds)) > 0
+    good = (count >= 2) & has_own
+    keep = good[seed.astype(np.int64)]
+    starts = (np.cumsum(count[good]) - count[good]).astype(np.int64)
+    return SeedCells(starts, scan[good], ra[good], dec[good], index[keep].astype(np.int64),
+                     row[keep].astype(np.int64), t0[keep].astype(np.int64),
+                     held[keep].astype(bool), n[keep].astype(float))
 
 
 def slide_offsets(maps, n_slides, min_shift, rng) -> np.ndarray:

@@ -95,24 +95,42 @@ def map_cell(geometry, rows, first, bore_q, ra, dec, sample):
     ``sample``: the nearest row's index, the map sample at which it passes the wafer's
     centre (it drifts along +direction, so it passed the centre along / speed before
     ``sample``; possibly outside the map) and its cross-scan offset (rad)."""
-    xi, eta = pointing.source_in_focal_plane(bore_q[[sample]], ra, dec)
-    along, across = geometry.point_offsets(xi[0], eta[0])
-    t0 = sample - first - int(round(along / geometry.speed * geometry.sample_rate))
-    return int(np.argmin(np.abs(rows - across))), t0, float(across)
+    row, t0, across = map_cells(geometry, rows, first, bore_q, [ra], [dec], [sample])
+    return int(row[0]), int(t0[0]), float(across[0])
+
+
+def map_cells(geometry, rows, first, bore_q, ra, dec, samples):
+    """:func:`map_cell` of many positions at once (``samples``: one group sample each):
+    arrays ``(row, t0, across)``."""
+    xi, eta = pointing.sources_in_focal_plane(bore_q[np.asarray(samples, np.int64)], ra, dec)
+    along, across = geometry.point_offsets(xi, eta)
+    t0 = (np.asarray(samples) - first
+          - np.round(along / geometry.speed * geometry.sample_rate).astype(np.int64))
+    return np.argmin(np.abs(rows[None, :] - across[:, None]), axis=1), t0, across
+
+
+def crossing_cells(m: ScanMap, bore_q, ra, dec, row_reach):
+    """``(row, t0, ok)`` of the positions (ra, dec) (arrays) on the map ``m``: the map cell
+    each passes the wafer's centre in, and whether it is on the map (within ``row_reach``
+    rad of a row, not reaching past a scan end)."""
+    ra, dec = np.asarray(ra, float), np.asarray(dec, float)
+    nsamp = m.z.shape[1]
+    sample = np.full(len(ra), m.first + nsamp // 2, np.int64)
+    ok = np.ones(len(ra), bool)
+    for _ in range(2):         # from the scan's middle, then from the crossing found
+        row, t0, across = map_cells(m.geometry, m.rows, m.first, bore_q, ra, dec, sample)
+        ok &= (t0 >= 0) & (t0 < nsamp)
+        t0 = np.clip(t0, 0, nsamp - 1)
+        sample = m.first + t0
+    ok &= np.abs(m.rows[row] - across) <= row_reach
+    return row, t0, ok
 
 
 def crossing_cell(m: ScanMap, bore_q, ra, dec, row_reach):
-    """``(row, t0)`` of (ra, dec) on the map ``m`` (:func:`map_cell`), or None when its path
-    misses the map (further than ``row_reach`` rad from every row, or reaching past a scan
-    end)."""
-    nsamp = m.z.shape[1]
-    sample = m.first + nsamp // 2
-    for _ in range(2):         # from the scan's middle, then from the crossing found
-        row, t0, across = map_cell(m.geometry, m.rows, m.first, bore_q, ra, dec, sample)
-        if not 0 <= t0 < nsamp:
-            return None
-        sample = m.first + t0
-    return None if abs(m.rows[row] - across) > row_reach else (row, t0)
+    """``(row, t0)`` of (ra, dec) on the map ``m`` (:func:`crossing_cells`), or None when
+    its path misses the map."""
+    row, t0, ok = crossing_cells(m, bore_q, [ra], [dec], row_reach)
+    return (int(row[0]), int(t0[0])) if ok[0] else None
 
 
 def crossing_of(m: ScanMap, bore_q, ra, dec, row_reach):
@@ -154,17 +172,33 @@ def stack_seeds(maps, seeds, bore_q, timestamps, beam_sigma, row_step, window_s,
     Returns dicts with ``ra``, ``dec``, ``z``, ``flux``, ``flux_err``, ``share`` and
     ``crossings`` (a list of :class:`Crossing`), highest Z first, neighbours suppressed."""
     found = []
-    for scan, sample, ra, dec in seeds:
-        t = timestamps[sample]
-        near = [m for m in maps if m.t_hi >= t - window_s / 2 and m.t_lo <= t + window_s / 2]
-        crossings = [c for c in (crossing_of(m, bore_q, ra, dec, row_step * beam_sigma)
-                                 for m in near) if c is not None]
+    for (_, _, ra, dec), crossings in zip(seeds, seed_crossings(
+            maps, seeds, bore_q, timestamps, row_step * beam_sigma, window_s)):
         if len(crossings) < 2:
             continue
         res = stack(crossings)
         if kept(res, crossings, cfg):
             found.append(dict(ra=ra, dec=dec, crossings=crossings, **res))
     return suppress(found, timestamps, 2.0 * beam_sigma)
+
+
+def seed_crossings(maps, seeds, bore_q, timestamps, row_reach, window_s) -> list:
+    """For each seed ``(scan, sample, ra, dec)``, the :class:`Crossing` list of its
+    position on the maps within ``window_s`` centred on it (:func:`crossing_of`, every
+    map's seeds at once)."""
+    out = [[] for _ in seeds]
+    if not len(seeds):
+        return out
+    ra, dec = (np.array([s[k] for s in seeds], float) for k in (2, 3))
+    t = timestamps[np.array([s[1] for s in seeds], np.int64)]
+    for m in maps:
+        near = np.flatnonzero((m.t_hi >= t - window_s / 2) & (m.t_lo <= t + window_s / 2))
+        row, t0, ok = crossing_cells(m, bore_q, ra[near], dec[near], row_reach)
+        ok &= np.isfinite(m.z[row, t0])
+        for i, r, c in zip(near[ok], row[ok], t0[ok]):
+            out[i].append(Crossing(m.scan, m.first + int(c), int(r), float(m.z[r, c]),
+                                   float(m.flux[r, c]), float(m.n[r])))
+    return out
 
 
 def map_seeds(snr, m: ScanMap, beam_sigma, sigma_amp, live, bore_q, row_step,

@@ -170,6 +170,28 @@ def test_a_stack_slide_reads_what_stacking_reads_unmoved(flare_maps):
         assert stats["share"][0, k] == pytest.approx(res["share"], rel=1e-5)
 
 
+def test_crossings_found_at_once_are_those_found_one_by_one(flare_maps):
+    """Every map's seeds are placed on it at once (one so3g call): the same crossings as
+    placing each seed on each map on its own, from the same focal-plane positions."""
+    from so_transients.pointing import source_in_focal_plane, sources_in_focal_plane
+    from so_transients.sweep_stack import crossing_of, seed_crossings
+    f = flare_maps
+    seeds = f.seeds[:60]
+    samples = [s[1] for s in seeds]
+    xi, eta = sources_in_focal_plane(f.q[samples], [s[2] for s in seeds],
+                                     [s[3] for s in seeds])
+    for k, (_, sample, ra, dec) in enumerate(seeds):
+        one = source_in_focal_plane(f.q[[sample]], ra, dec)
+        assert (xi[k], eta[k]) == pytest.approx((one[0][0], one[1][0]), abs=1e-12)
+    found = seed_crossings(f.maps, seeds, f.q, f.t, 0.8 * f.beam, 300.0)
+    assert sum(len(c) for c in found) > len(seeds)
+    for (_, sample, ra, dec), crossings in zip(seeds, found):
+        alone = [c for c in (crossing_of(m, f.q, ra, dec, 0.8 * f.beam) for m in f.maps
+                             if m.t_hi >= f.t[sample] - 150.0 and m.t_lo <= f.t[sample] + 150.0)
+                 if c is not None]
+        assert crossings == alone
+
+
 def test_stack_slides_remove_the_flare_and_keep_the_noise(flare_maps, slow_flare):
     """Slid, the flare's stack (its crossings no longer lined up) falls to the noise: over
     200 slides its mean is the seed's own term (the held crossing) and no more, within four

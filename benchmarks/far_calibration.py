@@ -156,7 +156,8 @@ def main(argv=None):
     maps, beam, snrs, sigmas = maps_of(aman, cfg)
     elapsed = time.perf_counter() - t1
     scale = float(np.median([s for m in maps for s in m.slide_scale]))
-    data_scale = float(np.median([measured_scale(m.z) for m in maps]))
+    data_scale = float(np.median([measured_scale(m.z, lags=m.geometry.lag_samples)
+                                  for m in maps]))
     # the background maxima that pass the chi-squared test, as the data's maxima do
     background = np.concatenate([np.asarray(m.background)[np.asarray(m.background_ok, bool)]
                                  for m in maps]) / scale

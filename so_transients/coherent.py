@@ -96,7 +96,7 @@ def coherent_map(snr, geometry: CrossingGeometry, rows, beam_sigma, sigma_amp, l
                  offsets=None, with_flux=True, finite=False, dtype=np.float64):
     """``(z, flux)``: Z and the flux estimate S (mJy) on rows x samples of ``snr`` (ndet,
     nsamp), with rows of cross-scan offsets ``rows``. Positions whose crossing reaches past
-    either end of ``snr`` are NaN. ``offsets`` (ndet,) samples added to each detector's lag
+    either end of ``snr`` sum the detectors crossed inside it (:func:`fill_edges`). ``offsets`` (ndet,) samples added to each detector's lag
     (a time slide, applied cyclically). ``with_flux=False``: Z only (``flux`` is None);
     ``finite``: ``snr`` is known to hold no NaN (a caller making many maps of it cleans it
     once, :func:`finite_snr`); ``dtype``: of the sums (float32 for the many maps of a
@@ -114,19 +114,53 @@ def coherent_map(snr, geometry: CrossingGeometry, rows, beam_sigma, sigma_amp, l
         flux = acc / (norm**2)[:, None] if with_flux else None
         acc /= norm[:, None]
     z = acc
-    if offsets is None:      # positions whose crossing wraps around the ends are not real
-        for out in (z, flux) if flux is not None else (z,):
-            mask_wrapped(out, lags)
+    if offsets is None:      # positions whose crossing wraps around the ends: no wrapping
+        fill_edges(z, snr, weights, norm, lags, flux)
     return z, flux
 
 
-def mask_wrapped(z, lags):
-    """``z`` (rows x samples of a map) with NaN where a position's crossing, delayed by the
-    detectors' ``lags``, wraps around either end of the samples (in place; returned)."""
+#: A position at a scan end is on the map when the detectors crossed inside the scan hold
+#: at least this fraction of its row's weight^2 (a source crossing the wafer's centre at the
+#: scan's first or last sample: about half).
+EDGE_FRACTION = 0.4
+
+
+def interior(nsamp, lags) -> slice:
+    """The samples of a map whose whole crossing, delayed by the detectors' ``lags``, lies
+    within ``nsamp`` samples."""
+    lo = min(max(0, -int(np.min(lags))), nsamp)
+    return slice(lo, max(nsamp - max(0, int(np.max(lags))), lo))
+
+
+def edge_samples(nsamp, lags) -> np.ndarray:
+    """The samples of a map whose crossing reaches past either end (:func:`interior`'s
+    complement)."""
+    inner = interior(nsamp, lags)
+    return np.r_[0:inner.start, inner.stop:nsamp]
+
+
+def fill_edges(z, snr, weights, norm, lags, flux=None):
+    """``z`` (rows x samples of a map: cyclic sums / ``norm``) with the positions whose
+    crossing reaches past either end of ``snr`` (finite) summed over the detectors crossed
+    inside it, ``sum_d w_d snr_d / sqrt(sum_d w_d^2)`` over them (``flux``: the sum over
+    ``sum_d w_d^2``), and NaN where those hold less than :data:`EDGE_FRACTION` of the row's
+    weight^2 (in place; returned). A source crossing as a scan starts or ends is searched
+    with the detectors that saw it."""
     nsamp = z.shape[1]
-    lo = min(max(0, -np.min(lags)), nsamp)
-    hi = max(nsamp - max(0, np.max(lags)), lo)
-    z[:, :lo] = z[:, hi:] = np.nan
+    t = edge_samples(nsamp, lags)
+    used = np.flatnonzero(np.any(weights != 0, axis=0))
+    if not len(t) or not len(used):
+        return z
+    at = t[:, None] + np.asarray(lags)[None, used]
+    inside = (at >= 0) & (at < nsamp)
+    values = np.where(inside, np.asarray(snr)[used[None, :], np.clip(at, 0, nsamp - 1)], 0.0)
+    w = np.asarray(weights, float)[:, used]
+    sums, norm2 = values @ w.T, inside.astype(float) @ (w**2).T
+    with np.errstate(invalid="ignore", divide="ignore"):
+        kept = norm2 >= EDGE_FRACTION * np.asarray(norm, float)[None, :] ** 2
+        z[:, t] = np.where(kept, sums / np.sqrt(norm2), np.nan).T
+        if flux is not None:
+            flux[:, t] = np.where(kept, sums / norm2, np.nan).T
     return z
 
 
@@ -198,14 +232,14 @@ def largest_share(snr, geometry: CrossingGeometry, rows, beam_sigma, sigma_amp, 
     weights, _ = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
     shifts = geometry.lag_samples + (0 if offsets is None else np.asarray(offsets, np.int64))
     return term_shares(snr, weights, row_members(weights), shifts, peak_rows, peak_samples,
-                       sign)
+                       sign, cyclic=offsets is not None)
 
 
-def term_shares(snr, weights, members, shifts, rows, samples, sign=1.0):
+def term_shares(snr, weights, members, shifts, rows, samples, sign=1.0, cyclic=True):
     """The largest term's share ``best / total`` of each position's sum, from
     :func:`point_sums` (``members``: its ``(indptr, members)``), 1 where the sum is not
     positive."""
-    total, best = point_sums(snr, weights, *members, shifts, rows, samples, sign)
+    total, best = point_sums(snr, weights, *members, shifts, rows, samples, sign, cyclic)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(total > 0, best / total, 1.0)
 
@@ -218,27 +252,30 @@ def row_members(weights):
             d.astype(np.int64))
 
 
-def point_sums(snr, weights, indptr, members, shifts, rows, samples, sign=1.0):
+def point_sums(snr, weights, indptr, members, shifts, rows, samples, sign=1.0, cyclic=True):
     """``(total, best)`` at each map position (``rows``, ``samples``): the sum of its terms
-    ``sign * weights[r, d] * snr[d, (t + shifts[d]) % nsamp]`` (NaN samples: 0), its
-    unnormalized Z, and the largest term (at least 0); ``indptr``, ``members``:
-    :func:`row_members` of ``weights``."""
+    ``sign * weights[r, d] * snr[d, (t + shifts[d]) % nsamp]`` (NaN samples: 0; without
+    ``cyclic``, only the samples inside ``snr``), its unnormalized Z, and the largest term
+    (at least 0); ``indptr``, ``members``: :func:`row_members` of ``weights``."""
     n = len(rows)
     total, best = np.zeros(n), np.zeros(n)
     _point_sums(np.asarray(snr), np.ascontiguousarray(weights), indptr, members,
                 np.asarray(shifts, np.int64), np.asarray(rows, np.int64),
-                np.asarray(samples, np.int64), float(sign), total, best)
+                np.asarray(samples, np.int64), float(sign), bool(cyclic), total, best)
     return total, best
 
 
 @njit(cache=True, nogil=True)
-def _point_sums(snr, weights, indptr, members, shifts, rows, samples, sign, total, best):
+def _point_sums(snr, weights, indptr, members, shifts, rows, samples, sign, cyclic, total,
+                best):
     nsamp = snr.shape[1]
     for k in range(len(rows)):
         r, t = rows[k], samples[k]
         tot, top = 0.0, 0.0
         for i in range(indptr[r], indptr[r + 1]):
             d = members[i]
+            if not cyclic and not 0 <= t + shifts[d] < nsamp:
+                continue
             v = snr[d, (t + shifts[d]) % nsamp]
             if np.isfinite(v):
                 term = sign * weights[r, d] * v
@@ -251,13 +288,18 @@ def _point_sums(snr, weights, indptr, members, shifts, rows, samples, sign, tota
 MAX_SCALE_VALUES = 20_000
 
 
-def measured_scale(z, max_values=MAX_SCALE_VALUES) -> float:
+def measured_scale(z, max_values=MAX_SCALE_VALUES, lags=None) -> float:
     """The robust standard deviation of a map's finite values (1 for independent noise),
-    from at most about ``max_values`` of them, evenly spread."""
+    from at most about ``max_values`` of them, evenly spread; with the detectors' ``lags``,
+    of the positions whose whole crossing is in the scan only (at the scan ends fewer
+    detectors make the sum, :func:`fill_edges`, which shares less of their correlation)."""
+    if lags is not None:
+        z = np.asarray(z)[:, interior(np.shape(z)[1], lags)]
     values = np.asarray(z)[np.isfinite(z)]
     # 20,000 values give it to about 1 % (robust std); a scan's map has 10^5 or more
     values = values[::max(1, len(values) // max_values)]
-    return float(mad_std(values)) if len(values) > 10 else 1.0
+    scale = float(mad_std(values)) if len(values) > 10 else 1.0
+    return scale if scale > 0 else 1.0      # a map of zeros (no live samples): Z 0
 
 
 def local_maxima(z, threshold, time_window):

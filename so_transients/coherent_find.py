@@ -50,7 +50,7 @@ def scan_map(snr, geometry, beam_sigma, sigma_amp, live, cfg, with_flux=True):
     rows = row_offsets(geometry, beam_sigma, cfg.row_step)
     z, flux = coherent_map(snr, geometry, rows, beam_sigma, sigma_amp, live,
                            with_flux=with_flux)
-    scale = measured_scale(z)
+    scale = measured_scale(z, lags=geometry.lag_samples)
     weights, norm = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
     return rows, z / scale, flux, norm / scale, weights
 

@@ -50,12 +50,13 @@ class Vetoes:
         """:func:`so_transients.crossing_chi2.detector_groups` of a map."""
         return detector_groups(weights, geometry, int(self.chi2_bins))
 
-    def chi2(self, snr, weights, geometry, shifts, rows, samples, sign=1.0, groups=None):
+    def chi2(self, snr, weights, geometry, shifts, rows, samples, sign=1.0, groups=None,
+             cyclic=False):
         """:func:`so_transients.crossing_chi2.crossing_chi2` of the map positions (``groups``:
-        :meth:`groups`, computed here when not given)."""
+        :meth:`groups`, computed here when not given; ``cyclic``: of a time slide's map)."""
         groups = self.groups(weights, geometry) if groups is None else groups
         return crossing_chi2(snr, weights, groups, int(self.chi2_bins), shifts, rows, samples,
-                             sign)
+                             sign, cyclic)
 
     def consistent(self, chi2, z):
         """Whether maxima of normalized Z ``z`` with these ``chi2`` pass the chi-squared

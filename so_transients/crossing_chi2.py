@@ -71,10 +71,11 @@ def detector_groups(weights, geometry, bins) -> tuple:
                                           np.asarray(geometry.lag_samples), max(bins, 1))
 
 
-def crossing_chi2(snr, weights, groups, bins, shifts, rows, samples, sign=1.0):
+def crossing_chi2(snr, weights, groups, bins, shifts, rows, samples, sign=1.0, cyclic=True):
     """chi2 of each map position (``rows`` indices, ``samples``) of the map of ``sign`` x
     ``snr`` whose detectors are read at ``(t + shifts[d]) % nsamp`` (``shifts``: the lags,
-    plus a time slide's offsets); ``weights``: the map's, ``groups``: their
+    plus a time slide's offsets; without ``cyclic``, the data's map: only the detectors
+    crossed inside ``snr`` count); ``weights``: the map's, ``groups``: their
     :func:`detector_groups`. NaN without ``bins`` >= 2."""
     if bins < 2:
         return np.full(len(rows), np.nan)
@@ -82,12 +83,13 @@ def crossing_chi2(snr, weights, groups, bins, shifts, rows, samples, sign=1.0):
     out = np.zeros(len(rows))
     _chi2(np.asarray(snr), np.ascontiguousarray(weights), indptr, members, groups, bins,
           np.asarray(shifts, np.int64), np.asarray(rows, np.int64),
-          np.asarray(samples, np.int64), float(sign), out)
+          np.asarray(samples, np.int64), float(sign), bool(cyclic), out)
     return out
 
 
 @njit(cache=True, nogil=True)
-def _chi2(snr, weights, indptr, members, groups, bins, shifts, rows, samples, sign, out):
+def _chi2(snr, weights, indptr, members, groups, bins, shifts, rows, samples, sign, cyclic,
+          out):
     nsamp = snr.shape[1]
     part, norm2 = np.zeros(bins), np.zeros(bins)
     for k in range(len(rows)):
@@ -96,6 +98,8 @@ def _chi2(snr, weights, indptr, members, groups, bins, shifts, rows, samples, si
         norm2[:] = 0.0
         for i in range(indptr[r], indptr[r + 1]):
             d, g = members[i], groups[i]
+            if not cyclic and not 0 <= t + shifts[d] < nsamp:
+                continue
             w = weights[r, d]
             v = snr[d, (t + shifts[d]) % nsamp]
             if np.isfinite(v):

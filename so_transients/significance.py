@@ -40,7 +40,7 @@ import numpy as np
 
 from . import pointing
 from .coherent import (CrossingGeometry, coherent_map, false_alarm_rate, finite_snr,
-                       largest_share, local_maxima, mask_wrapped, measured_scale, row_members,
+                       largest_share, local_maxima, fill_edges, measured_scale, row_members,
                        row_offsets, row_weights, term_shares, window_max)
 from .scan_geometry import drift_velocity
 from .scan_geometry import sample_rate as rate_of   # (``sample_rate`` names the Hz below)
@@ -136,8 +136,8 @@ def scan_maps(snr, geometry, beam_sigma, sigma_amp, live, first, cfg: Significan
     weights, norm = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
     cyclic, partial = cyclic_map(snr, geometry, rows, beam_sigma, sigma_amp, live, weights,
                                  norm, slid)
-    z = mask_wrapped(cyclic.copy(), geometry.lag_samples)
-    out = ScanMaps(first, geometry, rows, z, measured_scale(z))
+    z = fill_edges(cyclic.copy(), snr, weights, norm, geometry.lag_samples)
+    out = ScanMaps(first, geometry, rows, z, measured_scale(z, lags=geometry.lag_samples))
     out.inverted, out.inverted_ok = inverted_maxima(z, snr, geometry, rows, beam_sigma,
                                                     sigma_amp, live, out.data_scale, window,
                                                     cfg, vetoes)
@@ -164,7 +164,7 @@ def scan_maps(snr, geometry, beam_sigma, sigma_amp, live, first, cfg: Significan
         keep = search.largest_share(r, s, offsets) <= cfg.max_single_share
         r, s, peak = r[keep], s[keep], peak[keep]
         chi2.extend(vetoes.chi2(snr, search.weights, geometry, lags + offsets, r, s,
-                                groups=groups))
+                                groups=groups, cyclic=True))
         out.background.extend(peak)
         z_norm.extend(peak / scale)          # each slide in units of its own spread
     if out.background:       # the test's limits at once (their cost is per call)

@@ -4,9 +4,10 @@ import pytest
 
 from so_transients.angles import ARCMIN
 from so_transients.significance import SignificanceConfig
-from so_transients.coherent import (SHIFT_ADD_BLOCK, CrossingGeometry, coherent_map,
-                                    false_alarm_rate, local_maxima, measured_scale, row_offsets,
-                                    row_weights, time_slide_offsets)
+from so_transients.coherent import (EDGE_FRACTION, SHIFT_ADD_BLOCK, CrossingGeometry,
+                                    coherent_map, edge_samples, false_alarm_rate, local_maxima,
+                                    measured_scale, row_offsets, row_weights,
+                                    time_slide_offsets)
 
 FS = 200.0
 SIGMA_BEAM = 0.94 * ARCMIN               # f090 beam sigma
@@ -69,6 +70,42 @@ def test_z_of_a_crossing_matches_its_expected_value_and_flux():
     assert abs(flux[row, 2000] - 150.0) < 0.1 * 150.0
     peaks = local_maxima(z, 8.0, 5)
     assert (row, 2000) in set(zip(*peaks)) or np.max(np.abs(peaks[1] - 2000)) <= 1
+
+
+def test_a_crossing_at_a_scan_end_is_summed_over_the_detectors_that_saw_it():
+    """A source passing the wafer's centre 10 samples after the scan starts (half the wafer
+    crossed it before): the map there sums the detectors crossed inside the scan, written
+    out here, and reaches the Z those alone give within the noise. On noise whose last
+    second is offset by 50 (which a cyclic sum would carry into the first samples) the
+    scan's first positions keep unit variance."""
+    rng = np.random.default_rng(4)
+    geometry, sigma = wafer(rng=rng)
+    rows = row_offsets(geometry, SIGMA_BEAM, ROW_STEP)
+    row, t0, live = len(rows) // 2, 10, np.ones(len(sigma), bool)
+    noise = rng.normal(size=(len(sigma), 4000))
+    noise[:, -200:] += 50.0
+    z, _ = coherent_map(noise, geometry, rows, SIGMA_BEAM, sigma, live)
+    first = edge_samples(noise.shape[1], geometry.lag_samples)
+    first = first[first < noise.shape[1] // 2]
+    values = z[:, first][np.isfinite(z[:, first])]
+    # ~40 rows x 50 samples, correlated over a few of each: the spread to about 5 %
+    assert len(first) >= 40 and len(values) > 1000
+    assert abs(np.std(values) - 1) < 0.15 and np.max(np.abs(values)) < 5
+
+    snr = noise.copy()
+    inject(snr, geometry, sigma, 150.0, t0, rows[row])
+    z, flux = coherent_map(snr, geometry, rows, SIGMA_BEAM, sigma, live)
+    weights, norm = row_weights(geometry, rows, SIGMA_BEAM, sigma, live)
+    at = t0 + geometry.lag_samples
+    inside = (at >= 0) & (at < snr.shape[1]) & (weights[row] > 0)
+    norm2 = np.sum(weights[row, inside]**2)
+    assert EDGE_FRACTION * norm[row]**2 <= norm2 < 0.7 * norm[row]**2  # part of the wafer
+    terms = weights[row, inside] * snr[inside, at[inside]]
+    assert z[row, t0] == pytest.approx(terms.sum() / np.sqrt(norm2))
+    assert flux[row, t0] == pytest.approx(terms.sum() / norm2)
+    # Z of the detectors that saw it: 150 mJy x sqrt(sum of their (beam / sigma)^2)
+    expected = 150.0 * np.sqrt(norm2)
+    assert abs(z[row, t0] - expected) < 4 and abs(flux[row, t0] - 150.0) < 4 * 150 / expected
 
 
 def test_a_time_slide_removes_the_source_and_keeps_the_noise():

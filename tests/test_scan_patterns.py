@@ -12,14 +12,20 @@ from conftest import BRIGHT_FLARE, load_group, run_sim, run_steps
 from test_coherent_find import coherent_pipe
 
 ARCMIN = np.pi / 180 / 60
-#: BRIGHT_FLARE crossed at its peak 100 s in: mid-sweep in both patterns (a crossing whose
-#: wafer crossing overlaps a turnaround is outside the coherent map; README, Coherent mode)
+#: BRIGHT_FLARE crossed at its peak 100 s in: mid-sweep in both patterns
 FLARE = {**BRIGHT_FLARE, "at_time": 100.0, "t_peak": 100.0}
 
 PATTERNS = {
     "slow-low": {"el": 35.0, "sky_speed": 0.5, "sweep_time": 60.0},
     "fast-high": {"el": 65.0, "sky_speed": 1.8, "accel": 2.0, "sweep_time": 30.0},
 }
+
+
+def simulate(path, pattern, flare):
+    """4 minutes of w16 at f090 on ``pattern`` with glitches and ``flare``."""
+    return run_sim(path, seed=7, observation={"duration": 240.0},
+                   instrument={"bands": ["f090"]}, scan=PATTERNS[pattern],
+                   glitches={"enabled": True, "rate_per_hour": 200}, flares={"list": [flare]})
 
 
 def search(sim):
@@ -40,10 +46,7 @@ def test_another_scan_pattern_finds_the_flare_where_it_is_with_its_flux(tmp_path
     candidate (larger Z, smaller far), at its position (within 5 fit errors and 0.5') and
     with its flux (within 5 fit errors and 10 %: a matched filter or map built for the
     wrong speed loses a large fraction of the amplitude)."""
-    sim = run_sim(tmp_path, seed=7, observation={"duration": 240.0},
-                  instrument={"bands": ["f090"]}, scan=PATTERNS[pattern],
-                  glitches={"enabled": True, "rate_per_hour": 200},
-                  flares={"list": [FLARE]})
+    sim = simulate(tmp_path, pattern, FLARE)
     cands, aman = search(sim)
     truth = sim.flares
     t_flare = float(aman.timestamps[0]) + FLARE["t_peak"]
@@ -61,3 +64,16 @@ def test_another_scan_pattern_finds_the_flare_where_it_is_with_its_flux(tmp_path
     assert abs(d_dec) < max(5 * cands["dec_err"][k], 0.5 * ARCMIN)
     flux = FLARE["s_peak_mjy"]
     assert abs(cands["flux"][k] - flux) < max(5 * cands["flux_err"][k], 0.1 * flux)
+
+
+def test_a_flare_crossed_at_a_turnaround_is_found_on_both_sides(tmp_path):
+    """BRIGHT_FLARE peaks 120 s in, as the slow scan (60 s sweeps) turns around: the wafer
+    crosses it as one scan ends and again as the next starts, each time with part of its
+    detectors. The coherent map sums the detectors that saw it, so both crossings are
+    detected (before, the map left out every position whose crossing reached past the
+    scan's ends, and neither was)."""
+    sim = simulate(tmp_path, "slow-low", BRIGHT_FLARE)
+    cands, aman = search(sim)
+    t = cands["t_peak"] - float(aman.timestamps[0])
+    near = np.asarray(cands["detected"], bool) & (np.abs(t - BRIGHT_FLARE["t_peak"]) < 2.0)
+    assert len(np.unique(cands["scan"][near])) == 2, t[near]

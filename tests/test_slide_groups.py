@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from so_transients.coherent import coherent_map, row_offsets, row_weights
+from so_transients.coherent import coherent_map, edge_samples, row_offsets, row_weights
 from so_transients.slide_groups import (gate_maxima, group_offsets, group_sum,
                                         min_group_samples, partial_maps, slide_groups)
 from test_coherent import ROW_STEP, SIGMA_BEAM, wafer
@@ -57,7 +57,8 @@ def test_the_partial_maps_add_up_to_the_map():
     assert terms.shape == (8 * len(rows), 3000)
     total = group_sum(terms, 8) / norm[:, None]
     z, _ = coherent_map(snr, geometry, rows, SIGMA_BEAM, sigma, live, with_flux=False)
-    inside = np.isfinite(z)
+    inside = np.ones(z.shape, bool)     # the data's map does not wrap at the scan ends
+    inside[:, edge_samples(z.shape[1], geometry.lag_samples)] = False
     assert inside.sum() > 1000
     assert np.allclose(total[inside], z[inside], atol=1e-4)
 

@@ -96,8 +96,9 @@ def coherent_map(snr, geometry: CrossingGeometry, rows, beam_sigma, sigma_amp, l
                  offsets=None, with_flux=True, finite=False, dtype=np.float64):
     """``(z, flux)``: Z and the flux estimate S (mJy) on rows x samples of ``snr`` (ndet,
     nsamp), with rows of cross-scan offsets ``rows``. Positions whose crossing reaches past
-    either end of ``snr`` sum the detectors crossed inside it (:func:`fill_edges`). ``offsets`` (ndet,) samples added to each detector's lag
-    (a time slide, applied cyclically). ``with_flux=False``: Z only (``flux`` is None);
+    either end of ``snr`` sum the detectors crossed inside it (:func:`fill_edges`).
+    ``offsets`` (ndet,) samples added to each detector's lag (a time slide, applied
+    cyclically). ``with_flux=False``: Z only (``flux`` is None);
     ``finite``: ``snr`` is known to hold no NaN (a caller making many maps of it cleans it
     once, :func:`finite_snr`); ``dtype``: of the sums (float32 for the many maps of a
     background: 1.6-3x faster, Z to 1e-6)."""

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from so_transients import candidates
-from so_transients.site import apply_overrides
+from so_transients.angles import ARCMIN
 
 from conftest import BRIGHT_FLARE, load_group, run_sim, run_steps
 from test_coherent_find import coherent_pipe
+from test_significance import with_significance
 
-ARCMIN = np.pi / 180 / 60
 #: BRIGHT_FLARE crossed at its peak 100 s in: mid-sweep in both patterns
 FLARE = {**BRIGHT_FLARE, "at_time": 100.0, "t_peak": 100.0}
 
@@ -31,11 +31,8 @@ def simulate(path, pattern, flare):
 def search(sim):
     """The transient steps in coherent mode with transient_significance (10 slides)."""
     aman = load_group(sim, band="f090")
-    pipe = apply_overrides([s for s in coherent_pipe() if s["name"] in candidates.STEPS
-                            or s["name"] == "transient_filter"], {})
-    at = [s["name"] for s in pipe].index("transient_fit")
-    pipe.insert(at, {"name": "transient_significance", "calc": {"n_slides": 10}})
-    run_steps(aman, pipe)
+    run_steps(aman, with_significance([s for s in coherent_pipe() if s["name"] in
+                                       candidates.STEPS or s["name"] == "transient_filter"]))
     return candidates.from_aman(aman.transient_candidates, candidates.CAND_AXIS), aman
 
 

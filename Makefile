@@ -6,12 +6,12 @@ STAMP  := $(VENV)/.installed
 # OpenMP threads spin-wait on 2 cores (pyfftw, so3g): let idle threads sleep.
 export OMP_WAIT_POLICY ?= passive
 
-.PHONY: demo test bench clean install
+.PHONY: demo test lint docs bench clean install
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test]'
+	$(PY) -m pip install --quiet -e '.[test,docs]'
 	@touch $(STAMP)
 
 install: $(STAMP)
@@ -22,9 +22,17 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest
 
+# ruff, configured in pyproject.toml
+lint: $(STAMP)
+	$(VENV)/bin/ruff check so_transients tests benchmarks studies docs
+
+# The documentation (docs/), warnings as errors; open docs/_build/html/index.html
+docs: $(STAMP)
+	$(VENV)/bin/sphinx-build -W --keep-going -q -b html docs docs/_build/html
+
 # Speed and memory of the detection chain against the FFT floor (prints a table; see README).
 bench: $(STAMP)
 	$(PY) benchmarks/bench_chain.py --json bench_chain.json
 
 clean:
-	rm -rf data out results .pytest_cache
+	rm -rf data out results .pytest_cache docs/_build

@@ -45,10 +45,10 @@ from sotodlib.preprocess import Pipeline  # noqa: E402
 from sotodlib.tod_ops import fft_ops, filters  # noqa: E402
 
 import so_transients  # noqa: E402,F401  registers the steps and the loader
-from so_transients.angles import ARCMIN  # noqa: E402
-from so_transients.bands import fwhm_to_sigma  # noqa: E402
-from so_transients.matched_filter import FilterConfig, butterworth_highpass  # noqa: E402
-from so_transients.scan_geometry import scan_speed  # noqa: E402
+from so_transients.common.angles import ARCMIN  # noqa: E402
+from so_transients.common.bands import fwhm_to_sigma  # noqa: E402
+from so_transients.detect.matched_filter import FilterConfig, butterworth_highpass  # noqa: E402
+from so_transients.common.scan_geometry import scan_speed  # noqa: E402
 from so_transients.sim.config import SimConfig  # noqa: E402
 from so_transients.sim.simulate import simulate  # noqa: E402
 

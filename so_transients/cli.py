@@ -32,8 +32,8 @@ def _simulate(args):
 
 def _run_simulation(args):
     """Simulate the dataset of ``args`` and return the simulation result."""
-    from .sim.config import load_config
-    from .sim.simulate import simulate
+    from so_transients.sim.config import load_config
+    from so_transients.sim.simulate import simulate
 
     config = load_config(args.config, {"seed": args.seed, "output": args.out})
     t0 = time.time()
@@ -45,20 +45,22 @@ def _run_simulation(args):
 
 
 def _summary(args):
-    from .summary import dataset_summary
+    from so_transients.site.summary import dataset_summary
 
     print(dataset_summary(args.context))
 
 
 def _site_config(args):
-    from .site import write_site_config
+    from so_transients.site.pipeline import write_site_config
 
     print(write_site_config(args.dataset, args.out))
 
 
 def _catalog(args):
     """Exit status 1 with ``--strict`` when a group expected is not in the archive."""
-    from .results import archive_status, archive_table, output_format, write_table
+    from so_transients.site.results import (
+        archive_status, archive_table, output_format, write_table
+    )
 
     output_format(args.out, args.overwrite)          # refuse before the slow part
     status = archive_status(args.archive)
@@ -75,14 +77,14 @@ def _catalog(args):
 
 
 def _schema(args):
-    from .candidates import markdown
+    from so_transients.common.candidates import markdown
 
     print(markdown())
 
 
 def _demo(args):
-    from .demo import run_demo
-    from .summary import dataset_summary
+    from so_transients.demo import run_demo
+    from so_transients.site.summary import dataset_summary
 
     args.config = args.config or DEMO_CONFIG
     args.seed = None
@@ -93,9 +95,9 @@ def _demo(args):
 
 
 def _campaign(args):
-    from .campaign.config import load_campaign
-    from .campaign.run import run_campaign
-    from .parallel import executor, is_worker_rank
+    from so_transients.campaign.config import load_campaign
+    from so_transients.campaign.run import run_campaign
+    from so_transients.common.parallel import executor, is_worker_rank
 
     cfg = load_campaign(args.config, {"output": args.out, "nproc": args.nproc})
     pool, as_completed = executor(cfg.nproc)
@@ -113,7 +115,7 @@ def _campaign(args):
 
 
 def _events(args):
-    from .events.command import main
+    from so_transients.events.command import main
 
     return main(args.config, args.out, args.nproc, args.strict, args.quiet)
 
@@ -121,7 +123,7 @@ def _events(args):
 def _events_check(args):
     from astropy.table import Table
 
-    from .campaign.events_check import EventsCheckConfig, run_events_check
+    from so_transients.campaign.events_check import EventsCheckConfig, run_events_check
 
     cfg = EventsCheckConfig.read(args.config, args.out)
     t0 = time.time()
@@ -133,7 +135,7 @@ def _events_check(args):
 
 
 def _campaign_combine(args):
-    from .campaign.combine import combine_results
+    from so_transients.campaign.combine import combine_results
 
     folder = combine_results(args.results, args.out)
     print((folder / "summary.md").read_text())
@@ -150,7 +152,7 @@ def _common_options(default):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import __version__
+    from so_transients import __version__
 
     parser = argparse.ArgumentParser(prog="so-transients", description=__doc__.splitlines()[0],
                                      parents=[_common_options(False)])
@@ -196,7 +198,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("campaign", "injection-recovery campaign: efficiencies, detection "
                         "thresholds, flux/pointing recovery, false positives")
-    p.add_argument("config", help="campaign YAML (e.g. configs/campaign_quick.yaml)")
+    p.add_argument("config", help="campaign YAML (e.g. studies/configs/campaign_quick.yaml)")
     p.add_argument("-o", "--out", help="output folder (default: the config's `output`)")
     p.add_argument("--nproc", type=int, help="worker processes (default: the config's)")
     p.add_argument("--restart", action="store_true",
@@ -212,13 +214,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("events", "detections joined into events, with forced-photometry light curves, "
                       "light-curve fits, spectral indices and figures")
-    from .events.command import get_parser as events_parser
+    from so_transients.events.command import get_parser as events_parser
     events_parser(p)
     p.set_defaults(func=_events)
 
     p = add("events-check", "flares and noise through the site pipeline and the events "
                             "command, compared with the truth")
-    p.add_argument("config", help="events-check YAML (e.g. configs/events_check.yaml)")
+    p.add_argument("config", help="events-check YAML (e.g. studies/configs/events_check.yaml)")
     p.add_argument("-o", "--out", help="output folder (default: the config's `output`)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_events_check)

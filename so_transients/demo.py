@@ -18,11 +18,11 @@ import numpy as np
 from astropy.table import Table
 from sotodlib import core
 
-from .events.command import run_events, summary
-from .events.config import load_events_config
-from .matching import compare_with_truth
-from .results import archive_table, write_table
-from .site import failed_groups, run_site_pipeline, write_site_config
+from so_transients.events.command import run_events, summary
+from so_transients.events.config import load_events_config
+from so_transients.campaign.matching import compare_with_truth
+from so_transients.site.results import archive_table, write_table
+from so_transients.site.pipeline import failed_groups, run_site_pipeline, write_site_config
 
 
 def report(matched: Table, flares: Table, crossings: dict, t0: float) -> str:

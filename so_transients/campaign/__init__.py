@@ -3,4 +3,13 @@ and rise time injected into simulated noise-only observations, searched with the
 transient steps, matched to the truth, and summarized as the reference paper does (detection
 thresholds, flux and pointing recovery, false positives). See :mod:`.run` for the layout of a
 campaign folder and :mod:`.flare_injection` for the fast injection path.
+
+- :mod:`.config`, :mod:`.run`, :mod:`.work_units`, :mod:`.noise`: the campaign and its units
+- :mod:`.noise_model`, :mod:`.flare_injection`: the fast injection path; :mod:`.full_check`:
+  the same flares through the full site pipeline
+- :mod:`.search_steps`: the site config's search steps run in-process
+- :mod:`.matching`: detections matched to injected flares
+- :mod:`.stats`, :mod:`.report`, :mod:`.markdown`, :mod:`.figures`, :mod:`.combine`: results
+- :mod:`.equal_rate`, :mod:`.far_budget`: thresholds at the paper's false-detection rate
+- :mod:`.events_check`: the events step measured on simulated flares
 """

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 from astropy.table import Table, vstack
 
-from .report import INPUT_TABLES, OPTIONAL_TABLES, write_tables
+from so_transients.campaign.report import INPUT_TABLES, OPTIONAL_TABLES, write_tables
 
 
 def read_results(folder) -> dict:

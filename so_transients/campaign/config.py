@@ -3,7 +3,7 @@
 A campaign names a noise-only simulation (the ``simulation`` section, the schema of
 ``so-transients simulate`` without flares), the site preprocess config whose steps run on it,
 and a grid of bands x rise times x peak fluxes with ``n_flares`` flares per cell. See
-``configs/campaign_quick.yaml`` for the documented full set.
+``studies/configs/campaign_quick.yaml`` for the documented full set.
 
 The config's hash (:meth:`CampaignConfig.digest`) labels everything the campaign writes, so a
 resumed run never mixes results of different configs.
@@ -20,14 +20,14 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from ..bands import WHITE_NOISE_MJY
-from ..find import FindConfig
-from ..sim.config import SimConfig
-from ..sim.sources import PLACEMENTS
-from ..significance import SignificanceConfig
-from ..site import TEMPLATE, apply_overrides
-from ..step_config import from_yaml
-from .search_steps import split_pipe, step_settings, with_coherent_snr
+from so_transients.common.bands import WHITE_NOISE_MJY
+from so_transients.detect.find import FindConfig
+from so_transients.sim.config import SimConfig
+from so_transients.sim.sources import PLACEMENTS
+from so_transients.significance.far import SignificanceConfig
+from so_transients.site.pipeline import TEMPLATE, apply_overrides
+from so_transients.common.step_config import from_yaml
+from so_transients.campaign.search_steps import split_pipe, step_settings, with_coherent_snr
 
 #: Rise times of the paper's grid (section 5.1), seconds.
 PAPER_RISE_TIMES = (0.5, 1.0, 2.5, 5.0, 15.0, 30.0, 150.0, 300.0)
@@ -241,7 +241,7 @@ def load_campaign(path, overrides: dict | None = None) -> CampaignConfig:
                 raise ValueError(f"unknown keys in campaign section {name!r}: {sorted(bad)}")
             data[name] = klass(**section)
     if "preprocess" in data and not Path(data["preprocess"]).exists():
-        candidate = TEMPLATE.parent.parent / data["preprocess"]
+        candidate = TEMPLATE.parents[1] / data["preprocess"]
         if candidate.exists():
             data["preprocess"] = str(candidate)
     return CampaignConfig(**data)

@@ -26,8 +26,8 @@ import numpy as np
 from astropy import units as u
 from astropy.table import Table
 
-from ..tail_model import model_count_above, tail_threshold
-from .stats import binomial_interval
+from so_transients.significance.tail_model import model_count_above, tail_threshold
+from so_transients.campaign.stats import binomial_interval
 
 #: The paper's false-detection rate per wafer-band-hour (section 5.3: about 2 per hour over
 #: 12 MF wafers x 2 bands, about 1 per hour over 6 UHF wafers x 2 bands).

@@ -26,16 +26,16 @@ import numpy as np
 import yaml
 from astropy.table import Table
 
-from ..angles import ARCMIN, sky_separation
-from ..bands import FLAVOR_BANDS
-from ..events.command import run_events
-from ..events.config import load_events_config
-from ..lightcurve import active_window
-from ..robust import mad_std
-from ..sim.config import SimConfig
-from ..sim.simulate import simulate
-from ..site import failed_groups, run_site_pipeline, write_site_config
-from .full_check import site_processes
+from so_transients.common.angles import ARCMIN, sky_separation
+from so_transients.common.bands import FLAVOR_BANDS
+from so_transients.events.command import run_events
+from so_transients.events.config import load_events_config
+from so_transients.common.flare_model import active_window
+from so_transients.common.robust import mad_std
+from so_transients.sim.config import SimConfig
+from so_transients.sim.simulate import simulate
+from so_transients.site.pipeline import failed_groups, run_site_pipeline, write_site_config
+from so_transients.campaign.full_check import site_processes
 
 #: Rise-time bins (s) of the light-curve recovery table.
 T_RISE_BINS = (0.5, 2.5, 15.0, 60.0, 301.0)

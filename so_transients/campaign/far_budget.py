@@ -3,7 +3,7 @@
 The paper's search, and the campaign's equal-rate thresholds (:mod:`.equal_rate`), rank
 candidates by the beam fit's S/N, whose noise tail a few wafer-band-hours can only
 extrapolate. The coherent statistic Z has a measured background: ``transient_significance``'s
-time slides and sign-inverted data (:class:`so_transients.significance.Background`). With a
+time slides and sign-inverted data (:class:`so_transients.significance.far.Background`). With a
 budget (``far_budget`` in the campaign config; on by default in coherent mode) the campaign
 computes that background on each whole noise-only group, with the preprocess config's
 ``transient_significance`` settings (its defaults when the step is not listed), and keeps it
@@ -27,8 +27,9 @@ spread varies between scans.
 With sweep stacking (``transient_find``'s ``stack_window``), a stacked detection
 (``n_crossings`` > 1) has its own background, the slid and the sign-inverted maps' stacks
 of the noise-only groups (``transient_significance``'s,
-:func:`so_transients.significance.band_background`), and its own budget ``z_stack_budget``; single crossings and stacks each get half of the
-paper's rate, so that together they keep to it.
+:func:`so_transients.significance.far.band_background`), and its own budget
+``z_stack_budget``; single crossings and stacks each get half of the paper's rate, so that
+together they keep to it.
 """
 from __future__ import annotations
 
@@ -40,11 +41,12 @@ import numpy as np
 from astropy import units as u
 from astropy.table import Table
 
-from ..find import FindConfig, group_scans
-from ..scan_geometry import sample_rate
-from ..significance import Background, SignificanceConfig, band_background
-from .equal_rate import PAPER_RATE_PER_WBH
-from .search_steps import step_settings
+from so_transients.coherent.config import CoherentConfig, stacking_of
+from so_transients.detect.find import FindConfig, group_scans
+from so_transients.common.scan_geometry import sample_rate
+from so_transients.significance.far import Background, SignificanceConfig, band_background
+from so_transients.campaign.equal_rate import PAPER_RATE_PER_WBH
+from so_transients.campaign.search_steps import step_settings
 
 log = logging.getLogger(__name__)
 LIVE_COLUMNS = ("band", "obs_id", "wafer_slot", "slide_hours", "data_hours", "scale",
@@ -57,6 +59,7 @@ def group_background(state, search_steps, cfg: SignificanceConfig) -> Background
     aman = state.aman
     where = f"{state.group.obs_id} {state.group.wafer} {state.group.band}"
     find = step_settings(search_steps, FindConfig)
+    coherent = step_settings(search_steps, CoherentConfig)
     scan, _ = group_scans(state.timestamps, aman.boresight.az, aman.boresight.el, find, where)
     f = aman.transient_filter
     dets = np.flatnonzero(~np.asarray(f.dead, bool))
@@ -66,8 +69,8 @@ def group_background(state, search_steps, cfg: SignificanceConfig) -> Background
     background, _ = band_background(state.snr, dets, state.timestamps, state.bore_q,
                                     state.xi[dets], state.eta[dets], scan,
                                     state.sigma_amp[dets], beam,
-                                    sample_rate(state.timestamps, where), cfg, find.vetoes,
-                                    stacking=find.stacking)
+                                    sample_rate(state.timestamps, where), cfg,
+                                    coherent.vetoes, stacking=stacking_of(find, coherent))
     return background
 
 
@@ -202,7 +205,8 @@ def budget_table(backgrounds: dict, fitted_noise: Table, wafer_hours: dict,
                      hours, n, n / hours, np.sqrt(max(n, 1)) / hours, target * hours))
     table = Table(rows=rows or None,
                   names=("band", "statistic", "target_per_wbh", "z_budget", "z_stack_budget",
-                         "z_budget_chi2_failed", "slide_hours", "data_hours", "n_slide_maxima", "n_inverted_maxima",
+                         "z_budget_chi2_failed", "slide_hours", "data_hours", "n_slide_maxima",
+                         "n_inverted_maxima",
                          "n_stack_maxima", "wafer_hours", "n_noise_above", "noise_rate",
                          "noise_rate_err", "expected_above"),
                   dtype=("U8", "U16", float, float, float, float, float, float, int, int, int,
@@ -292,7 +296,7 @@ def search_background(group, folder, search_steps, settings: dict, stamp):
     """Compute and save the background of one prepared group (``settings``:
     ``transient_significance``'s, as a dict); run in a worker like the false-positive
     search."""
-    from .noise import GroupState
+    from so_transients.campaign.noise import GroupState
     state = GroupState.load(group, folder, search_steps)
     background = group_background(state, search_steps, SignificanceConfig(**settings))
     save_background(background, Path(folder) / "background.npz", stamp)

@@ -16,9 +16,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..angles import ARCSEC  # noqa: E402
-from ..bands import fwhm_to_sigma, get_band  # noqa: E402
-from .stats import LEVELS  # noqa: E402
+from so_transients.common.angles import ARCSEC  # noqa: E402
+from so_transients.common.bands import fwhm_to_sigma, get_band  # noqa: E402
+from so_transients.campaign.stats import LEVELS  # noqa: E402
 
 
 def _panels(bands):

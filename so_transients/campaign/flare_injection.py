@@ -1,6 +1,6 @@
 """Injecting one flare into the filtered noise of an observation and searching for it.
 
-The matched filter is linear once its noise weighting is fixed (:mod:`so_transients.noise_model`),
+The matched filter is linear once its noise weighting is fixed (:mod:`so_transients.campaign.noise_model`),
 so a flare's S/N in a group is the noise-only S/N plus the filter applied to the flare's signal
 alone. A crossing (one pass of the source over the group's footprint) touches the detectors for
 about a second, so only a window of a few seconds around it is built: the signal is computed
@@ -24,13 +24,15 @@ from dataclasses import dataclass, field
 import numpy as np
 from astropy.table import Table
 
-from ..bands import fwhm_to_sigma, get_band
-from ..noise_model import filtered_snr
-from ..matching import crossing_times
-from ..scan_geometry import constant_velocity, detector_pitch
-from ..sim.config import FlareConfig
-from ..sim.sources import PointingContext, SourceCrossing, add_sources, draw_flares, source_crossings
-from .search_steps import stack
+from so_transients.common.bands import fwhm_to_sigma, get_band
+from so_transients.campaign.noise_model import filtered_snr
+from so_transients.campaign.matching import crossing_times
+from so_transients.common.scan_geometry import constant_velocity, detector_pitch
+from so_transients.sim.config import FlareConfig
+from so_transients.sim.sources import (
+    PointingContext, SourceCrossing, add_sources, draw_flares, source_crossings
+)
+from so_transients.campaign.search_steps import stack
 
 
 def draw_cell_flares(cell, n, states, rng, placement="detector_at_peak", flare_eta=1.0

@@ -22,16 +22,16 @@ from pathlib import Path
 import numpy as np
 from astropy.table import Table
 
-from ..angles import ARCMIN, DEG
-from ..results import archive_table
-from ..sim.simulate import rng_for, simulate
-from ..sim.config import SimConfig
-from ..matching import compare_with_truth
-from ..site import failed_groups, run_site_pipeline, write_site_config
-from .flare_injection import draw_cell_flares
-from .noise import GroupState
-from .stats import binomial_interval
-from .work_units import search_flares
+from so_transients.common.angles import ARCMIN, DEG
+from so_transients.site.results import archive_table
+from so_transients.sim.simulate import rng_for, simulate
+from so_transients.sim.config import SimConfig
+from so_transients.campaign.matching import compare_with_truth
+from so_transients.site.pipeline import failed_groups, run_site_pipeline, write_site_config
+from so_transients.campaign.flare_injection import draw_cell_flares
+from so_transients.campaign.noise import GroupState
+from so_transients.campaign.stats import binomial_interval
+from so_transients.campaign.work_units import search_flares
 
 
 def spaced_flares(cell, n, states, rng, separation, placement="detector_at_peak",

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .equal_rate import PAPER_RATE_PER_WBH
+from so_transients.campaign.equal_rate import PAPER_RATE_PER_WBH
 
 
 def _f(value, fmt="{:.0f}"):
@@ -75,7 +75,8 @@ def false_section(false, equal):
              "paper's ~2 per hour over 24 MF wafer-bands and ~1 per hour over 12 UHF "
              "wafer-bands are 0.08 per wafer-band-hour. Last columns: the fitted-S/N "
              "threshold at which the modelled noise-only rate is the paper's "
-             "(`equal_rate.ecsv`; never below the cut of 5), and the measured count above 5 against the tail model's.",
+             "(`equal_rate.ecsv`; never below the cut of 5), and the measured count above 5 "
+             "against the tail model's.",
              "",
              "| band | wafer-band-hours | noise-only | inverted | paper | S/N at paper's rate "
              "| above 5: measured / model |", "|---|---:|---:|---:|---:|---:|---:|"]

@@ -40,14 +40,14 @@ from astropy.table import Table
 from sotodlib import core
 from sotodlib.preprocess import Pipeline
 
-from .. import step_fields
-from ..find import FindConfig
-from ..fit import FitConfig, FitInputs, measure_error_scale
-from ..noise_model import NoiseModel
-from ..pointing import BORE_Q, boresight_q
-from ..sim.imperfections import respond_to_sky
-from ..sim.simulate import planned_detsets, simulate
-from .search_steps import SEARCH_STEPS, SearchSteps, step_settings
+from so_transients.preprocess import step_fields
+from so_transients.detect.find import FindConfig
+from so_transients.detect.fit import FitConfig, FitInputs, measure_error_scale
+from so_transients.campaign.noise_model import NoiseModel
+from so_transients.common.pointing import BORE_Q, boresight_q
+from so_transients.sim.imperfections import respond_to_sky
+from so_transients.sim.simulate import planned_detsets, simulate
+from so_transients.campaign.search_steps import SEARCH_STEPS, SearchSteps, step_settings
 
 log = logging.getLogger(__name__)
 KEEP_FIELDS = ("timestamps", "boresight", "focal_plane", "det_info", "obs_info", "flags",
@@ -185,7 +185,7 @@ def group_info(folder) -> dict:
 
 def _slim(aman):
     """Drop what the search steps never read (their declarations in
-    :mod:`so_transients.step_fields`), so that cutting a window out of the group's
+    :mod:`so_transients.preprocess.step_fields`), so that cutting a window out of the group's
     AxisManager, and every merge into the window, stays cheap."""
     for name, keep in step_fields.kept_fields(SEARCH_STEPS).items():
         if name not in aman._fields or "*" in keep:

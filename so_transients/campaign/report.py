@@ -20,11 +20,11 @@ import numpy as np
 from astropy import units as u
 from astropy.table import Table, vstack
 
-from ..angles import ARCSEC
-from ..bands import get_band
-from .noise import group_info
-from .far_budget import background_tables
-from .stats import LEVELS, binomial_interval, thresholds
+from so_transients.common.angles import ARCSEC
+from so_transients.common.bands import get_band
+from so_transients.campaign.noise import group_info
+from so_transients.campaign.far_budget import background_tables
+from so_transients.campaign.stats import LEVELS, binomial_interval, thresholds
 
 #: Clancy et al. 2025, Table 2: S_p (mJy) at 10 / 50 / 90 % efficiency, by band and t_r (s).
 PAPER_TABLE2 = {
@@ -286,9 +286,9 @@ OPTIONAL_TABLES = ("full_check", "far_background", "far_live")
 def write_tables(folder, tables: dict, meta: dict, seed=0) -> Path:
     """Derive thresholds, flux, pointing and equal-rate tables from ``tables`` (the
     :data:`INPUT_TABLES`) and write them all, with ``summary.md`` and the figures."""
-    from .equal_rate import efficiency_at, equal_rate_thresholds
-    from .figures import write_figures
-    from .markdown import summary_markdown
+    from so_transients.campaign.equal_rate import efficiency_at, equal_rate_thresholds
+    from so_transients.campaign.figures import write_figures
+    from so_transients.campaign.markdown import summary_markdown
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -321,9 +321,10 @@ def far_budget_tables(tables: dict, wafer_hours: dict, seed=0) -> dict:
     ``far_budget`` (the Z per band and its check), ``efficiency_far``, ``thresholds_far`` and
     ``noise_far`` (the noise-only detections' far), each band ranked by the statistic
     ``far_live`` names for it (``map_z`` in coherent mode, ``coherent_snr`` in paper mode)."""
-    from .equal_rate import efficiency_at
-    from .far_budget import (budget_margin, budget_table, live_statistics, noise_far,
-                             pooled_backgrounds)
+    from so_transients.campaign.equal_rate import efficiency_at
+    from so_transients.campaign.far_budget import (
+        budget_margin, budget_table, live_statistics, noise_far, pooled_backgrounds
+    )
 
     statistics = live_statistics(tables["far_live"])
     backgrounds = pooled_backgrounds(tables["far_background"], tables["far_live"])

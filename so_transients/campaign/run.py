@@ -26,14 +26,15 @@ from pathlib import Path
 from astropy.table import Table, vstack
 from tqdm.auto import tqdm
 
-from ..parallel import executor, run_all
-from .config import CampaignConfig, Cell
-from .far_budget import background_done, search_background
-from .full_check import run_full_check
-from .noise import (campaign_groups, false_positives_done, prepare_group,
-                    search_false_positives, simulate_group)
-from .report import write_results
-from .work_units import run_unit, unit_done, unit_paths
+from so_transients.common.parallel import executor, run_all
+from so_transients.campaign.config import CampaignConfig, Cell
+from so_transients.campaign.far_budget import background_done, search_background
+from so_transients.campaign.full_check import run_full_check
+from so_transients.campaign.noise import (
+    campaign_groups, false_positives_done, prepare_group, search_false_positives, simulate_group
+)
+from so_transients.campaign.report import write_results
+from so_transients.campaign.work_units import run_unit, unit_done, unit_paths
 
 log = logging.getLogger(__name__)
 

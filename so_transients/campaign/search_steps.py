@@ -16,10 +16,10 @@ from astropy.table import Table, vstack
 from sotodlib import core
 from sotodlib.preprocess import Pipeline
 
-from .. import candidates
-from ..find import FindConfig
-from ..fit import FitConfig
-from ..step_config import from_yaml
+from so_transients.common import candidates
+from so_transients.detect.find import FindConfig
+from so_transients.coherent.config import CoherentConfig, stacking_of
+from so_transients.preprocess.step_settings import step_of, step_setting
 
 #: The steps a campaign runs on its windows: transient_significance needs whole scans for its
 #: time slides, so the fast path leaves it out (it reports, and cuts, nothing there), except
@@ -41,18 +41,19 @@ def split_pipe(process_pipe):
 
 
 def step_settings(search_steps, config_class):
-    """The settings of the search step ``config_class`` configures (``FindConfig`` for
-    ``transient_find``, ``FitConfig`` for ``transient_fit``) among the steps' config entries."""
-    name = {FindConfig: "transient_find", FitConfig: "transient_fit"}[config_class]
+    """The settings of the search step ``config_class`` configures (``FindConfig`` or
+    ``CoherentConfig`` for ``transient_find``, ``FitConfig`` for ``transient_fit``, ...)
+    among the steps' config entries."""
+    name = step_of(config_class)
     entry = next((s for s in search_steps if s["name"] == name), None)
     if entry is None:
         raise ValueError(f"the preprocess config has no {name} step")
-    return from_yaml(config_class, entry.get("calc"), name)
+    return step_setting(config_class, entry.get("calc"))
 
 
 def with_coherent_snr(search_steps, settings) -> list:
     """The search steps with ``transient_significance`` (``settings``: its
-    :class:`~so_transients.significance.SignificanceConfig`) before ``transient_fit``,
+    :class:`~so_transients.significance.far.SignificanceConfig`) before ``transient_fit``,
     without time slides or a ``max_far`` cut: every candidate gets its ``coherent_snr`` (the
     statistic the campaign's pooled background turns into a ``far``, :mod:`.far_budget`),
     and ``transient_fit`` still decides ``detected``."""
@@ -70,8 +71,7 @@ class SearchSteps:
     def __init__(self, steps, error_scale=None):
         names = [entry["name"] for entry in steps]
         #: ``transient_find``'s sweep-stacking window (s; None: no stacking)
-        self.stack_window = (step_settings(steps, FindConfig).stacking_window
-                             if "transient_find" in names else None)
+        self.stack_window = (_stacking_window(steps) if "transient_find" in names else None)
         self.steps = []
         for entry in steps:
             entry = copy.deepcopy(entry)
@@ -123,3 +123,9 @@ def detections(aman, obs_id="", fitted=False) -> Table:
         if col.unit is not None:
             table[name].unit = col.unit
     return table
+
+
+def _stacking_window(steps):
+    """``transient_find``'s sweep-stacking window (s), None without stacking."""
+    stacking = stacking_of(step_settings(steps, FindConfig), step_settings(steps, CoherentConfig))
+    return None if stacking is None else stacking.stack_window

@@ -14,14 +14,14 @@ import numpy as np
 from astropy import units as u
 from astropy.table import Table, vstack
 
-from ..lightcurve import flare_flux
-from ..angles import ARCMIN
-from ..matching import match
-from ..sim.simulate import rng_for
-from .config import Cell, Injection
-from .flare_injection import draw_cell_flares, inject_flare
-from .noise import Group, GroupState
-from .search_steps import SearchSteps, stack
+from so_transients.common.flare_model import flare_flux
+from so_transients.common.angles import ARCMIN
+from so_transients.campaign.matching import match
+from so_transients.sim.simulate import rng_for
+from so_transients.campaign.config import Cell, Injection
+from so_transients.campaign.flare_injection import draw_cell_flares, inject_flare
+from so_transients.campaign.noise import Group, GroupState
+from so_transients.campaign.search_steps import SearchSteps, stack
 
 _STATES: dict = {}     # per process: prepared groups already opened
 

@@ -35,13 +35,17 @@ import numpy as np
 from astropy.table import Table, vstack
 from tqdm.auto import tqdm
 
-from ..parallel import executor, is_worker_rank, run_all
-from ..provenance import attach, provenance
-from ..results import archive_entries, archive_status, archive_table, output_format
-from ..site import archive_index
-from .config import EventsConfig, load_events_config
-from .group_photometry import GroupJob, run_job, tracks_path
-from .tables import associate_detections, complete_events, fit_table, lightcurve_table
+from so_transients.common.parallel import executor, is_worker_rank, run_all
+from so_transients.site.provenance import attach, provenance
+from so_transients.site.results import (
+    archive_entries, archive_status, archive_table, output_format
+)
+from so_transients.site.pipeline import archive_index
+from so_transients.events.config import EventsConfig, load_events_config
+from so_transients.events.group_photometry import GroupJob, run_job, tracks_path
+from so_transients.events.tables import (
+    associate_detections, complete_events, fit_table, lightcurve_table
+)
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +68,7 @@ def obs_spans(preprocess) -> dict:
     observations or fields: the whole time line)."""
     from sotodlib import core
 
-    from ..site import read_config
+    from so_transients.site.pipeline import read_config
 
     context = core.Context(read_config(preprocess)["context_file"])
     spans = {}
@@ -177,7 +181,7 @@ def build_events(cfg: EventsConfig, progress=True, pool=None, as_completed=None)
 def write_figures(events, lightcurves, fits, detections, labels, statuses, folder: Path,
                   progress=True):
     """One PNG per event (:func:`so_transients.events.figures.plot_event`)."""
-    from .figures import plot_event
+    from so_transients.events.figures import plot_event
 
     tracks = {}
     for s in statuses:

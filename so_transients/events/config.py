@@ -11,9 +11,9 @@ Either an events YAML::
     spectral_min_snr: 3.0                   # crossings used for spectral indices
 
 or the preprocess config itself (every other setting at its default). Defaults live in the
-dataclasses only (:class:`so_transients.association.AssociationConfig`,
-:class:`so_transients.forced_photometry.PhotometryConfig`,
-:class:`so_transients.lightcurve_fit.FlareFitConfig`); the beam fit's window, radius and
+dataclasses only (:class:`so_transients.events.association.AssociationConfig`,
+:class:`so_transients.detect.forced_fit.PhotometryConfig`,
+:class:`so_transients.events.lightcurve_fit.FlareFitConfig`); the beam fit's window, radius and
 error scale, and the scan-speed tolerance, are the site config's own ``transient_fit`` and
 ``transient_find`` settings, never configured again here.
 """
@@ -24,13 +24,14 @@ from pathlib import Path
 
 import yaml
 
-from ..association import AssociationConfig
-from ..find import FindConfig
-from ..fit import FitConfig
-from ..forced_photometry import PhotometryConfig
-from ..lightcurve_fit import FlareFitConfig
-from ..site import archive_index, read_config
-from ..step_config import ConfigError, from_yaml
+from so_transients.events.association import AssociationConfig
+from so_transients.detect.find import FindConfig
+from so_transients.detect.fit import FitConfig
+from so_transients.detect.forced_fit import PhotometryConfig
+from so_transients.events.lightcurve_fit import FlareFitConfig
+from so_transients.site.pipeline import archive_index, read_config
+from so_transients.common.step_config import ConfigError, from_yaml
+from so_transients.preprocess.step_settings import step_setting
 
 
 @dataclass
@@ -53,7 +54,7 @@ class EventsConfig:
         when the step is not in the config)."""
         for entry in self.site["process_pipe"]:
             if entry.get("name") == name:
-                return from_yaml(cls, entry.get("calc"), f"{self.preprocess}: {name}")
+                return step_setting(cls, entry.get("calc"), f"{self.preprocess}: {name}")
         return cls()
 
     @property

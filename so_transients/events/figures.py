@@ -9,8 +9,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..angles import ARCSEC, tangent_offsets  # noqa: E402
-from ..lightcurve import flare_flux  # noqa: E402
+from so_transients.common.angles import ARCSEC, tangent_offsets  # noqa: E402
+from so_transients.common.flare_model import flare_flux  # noqa: E402
 
 BAND_COLORS = {"f090": "tab:blue", "f150": "tab:orange", "f220": "tab:green",
                "f280": "tab:red"}

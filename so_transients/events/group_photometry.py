@@ -3,7 +3,7 @@
 A work unit of ``so-transients events``: the group is loaded from the preprocess archive with
 sotodlib's ``load_and_preprocess`` (``transient_filter``'s ``process()`` rebuilds the
 filtered data), each event's position is measured at every crossing of its time window
-(:mod:`so_transients.forced_photometry`), and the rows are written to one ECSV file (with the
+(:mod:`so_transients.detect.forced_fit`), and the rows are written to one ECSV file (with the
 sky tracks of the detectors at each event's best crossing, for its figure, in an NPZ file
 beside it). A unit that finished is not run again while its inputs are unchanged; a unit
 that fails returns the error, naming the observation, the group and the archive.
@@ -20,11 +20,11 @@ from pathlib import Path
 import numpy as np
 from astropy.table import Table
 
-from .. import pointing
-from ..find import FindConfig, group_scans
-from ..fit import FitConfig, FitInputs, fit_window, measure_error_scale
-from ..forced_photometry import PhotometryConfig, group_crossings, measure_crossings
-from ..site import read_config
+from so_transients.common import pointing
+from so_transients.detect.find import FindConfig, group_scans
+from so_transients.detect.fit import FitConfig, FitInputs, fit_window, measure_error_scale
+from so_transients.detect.forced_fit import PhotometryConfig, group_crossings, measure_crossings
+from so_transients.site.pipeline import read_config
 
 #: Columns of a unit's ECSV file, beside the event id (all of the lightcurves table's that
 #: a group knows; the rest are added when the units are combined).

@@ -9,12 +9,12 @@
 Catalogue units: degrees for positions, arcsec for their errors, ctime seconds and ISO UTC
 for times, mJy for fluxes. To add a column: add one :class:`Column` here and fill it where
 the table is built (:mod:`so_transients.events.tables`); tables are made with
-:func:`so_transients.candidates.typed_table`.
+:func:`so_transients.common.candidates.typed_table`.
 """
 from __future__ import annotations
 
-from ..candidates import Column
-from ..lightcurve_fit import FLARE_PARAMS
+from so_transients.common.candidates import Column
+from so_transients.events.lightcurve_fit import FLARE_PARAMS
 
 _E, _L, _F = "events", "lightcurves", "lightcurve_fits"
 

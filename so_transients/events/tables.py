@@ -13,13 +13,17 @@ import numpy as np
 from astropy.coordinates import SkyCoord
 from astropy.table import Table
 
-from ..angles import ARCSEC
-from ..association import AssociationConfig, link, position_sigma, weighted_position
-from ..bands import FLAVOR_BANDS
-from ..candidates import typed_table
-from ..lightcurve_fit import FLARE_PARAMS, FlareFitConfig, fit_flare, spectral_index
-from ..results import utc
-from . import schema
+from so_transients.common.angles import ARCSEC
+from so_transients.events.association import (
+    AssociationConfig, link, position_sigma, weighted_position
+)
+from so_transients.common.bands import FLAVOR_BANDS
+from so_transients.common.candidates import typed_table
+from so_transients.events.lightcurve_fit import (
+    FLARE_PARAMS, FlareFitConfig, fit_flare, spectral_index
+)
+from so_transients.site.results import utc
+from so_transients.events import schema
 
 
 def event_name(ra_deg, dec_deg) -> str:

@@ -15,7 +15,7 @@ import numpy as np
 import sotodlib.io.metadata  # noqa: F401  registers sotodlib's HDF5 metadata loaders
 from sotodlib import core
 
-from .tod_file import read_tod
+from so_transients.io.tod_file import read_tod
 
 LOADER_NAME = "so_transients"
 

@@ -14,7 +14,7 @@ import numpy as np
 from pixell import enmap, utils
 from so3g.proj import Assembly, FocalPlane, Projectionist
 
-from ..bands import HARDWARE_BAND_KEY, nominal_hardware
+from so_transients.common.bands import HARDWARE_BAND_KEY, nominal_hardware
 
 
 

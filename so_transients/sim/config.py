@@ -19,8 +19,8 @@ from typing import Any
 
 import yaml
 
-from ..bands import HARDWARE_BAND_KEY, PAPER_KNEE_HZ, WHITE_NOISE_MJY
-from .scan import ScanPattern
+from so_transients.common.bands import HARDWARE_BAND_KEY, PAPER_KNEE_HZ, WHITE_NOISE_MJY
+from so_transients.sim.scan import ScanPattern
 
 
 def _is_number(value) -> bool:

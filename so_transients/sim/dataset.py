@@ -29,7 +29,7 @@ import yaml
 from sotodlib.core import metadata
 from sotodlib.io.metadata import write_dataset
 
-from ..io.loader import LOADER_NAME
+from so_transients.io.loader import LOADER_NAME
 
 DET_INFO_FIELDS = ("det_id", "tube_slot", "wafer_slot", "bandpass", "pol", "pixel")
 OBS_COLUMNS = ["timestamp float", "duration float", "start_time float", "stop_time float",

@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..angles import DEG
-from ..bands import FLAVOR_BANDS, nominal_hardware
+from so_transients.common.angles import DEG
+from so_transients.common.bands import FLAVOR_BANDS, nominal_hardware
 
 RHOMBUS_DIM = 12
 #: Sites left empty in each wafer (rhombus, row, col), as in sotodlib's TOAST focal-plane sim.
@@ -125,7 +125,7 @@ def lat_tubes(flavors=("LAT_MF", "LAT_UHF")):
 def tube_flavor(tube_slot: str) -> str:
     """``LAT_MF`` or ``LAT_UHF`` (or another hardware type) for a tube slot."""
     hw = nominal_hardware().data
-    if tube_slot not in hw["tube_slots"] or not tube_slot[0] in "cio":
+    if tube_slot not in hw["tube_slots"] or tube_slot[0] not in "cio":
         raise ValueError(f"unknown LAT tube slot {tube_slot!r}; known: {lat_tubes()}")
     return hw["tube_slots"][tube_slot]["type"]
 

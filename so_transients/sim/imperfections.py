@@ -24,7 +24,7 @@ from astropy import units as u
 from astropy.table import Table
 from scipy import fft
 
-from ..angles import ARCSEC
+from so_transients.common.angles import ARCSEC
 
 OK, DEAD, NOISY = "ok", "dead", "noisy"
 

@@ -14,9 +14,9 @@ from astropy import units as u
 from astropy.table import Table, vstack
 from so3g.proj import quat
 
-from ..angles import ARCMIN
-from ..pointing import angular_distance_xieta
-from .sources import SourceCrossing, _explicit_position, empty_table
+from so_transients.common.angles import ARCMIN
+from so_transients.common.pointing import angular_distance_xieta
+from so_transients.sim.sources import SourceCrossing, _explicit_position, empty_table
 
 MOVING_COLUMNS = [("source_id", int, None), ("band", str, None), ("ra", float, u.rad),
                   ("dec", float, u.rad), ("t_ref", float, u.s), ("rate", float, u.arcmin / u.min),

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..angles import DEG
+from so_transients.common.angles import DEG
 
 
 

@@ -23,22 +23,27 @@ import numpy as np
 from astropy.table import Table, vstack
 from tqdm.auto import tqdm
 
-from ..bands import FLAVOR_SAMPLE_RATE, get_band
-from ..io.tod_file import TodWriter
-from ..pointing import boresight_sightline, horizon_offsets, radec_of_samples
-from . import atmosphere, focal_plane
-from .cmb import CmbSky, footprint_geometry
-from .config import SimConfig
-from .dataset import DatasetWriter, obs_id_for
-from .glitches import add_glitches, draw_glitches
-from .imperfections import (DetectorFlaws, draw_flaws, flaws_table, metadata_positions,
-                            one_over_f, respond_to_sky, silence_dead)
-from .jumps import add_jumps, draw_jumps
-from .moving import MOVING_COLUMNS, draw_moving_sources, moving_crossings, track_table
-from .scan import boresight, constant_velocity_mask
-from .sources import (BEAM_REACH_SIGMA, FLARE_COLUMNS, POINT_SOURCE_COLUMNS, PointingContext,
-                      add_sources, draw_flares, draw_point_sources, empty_table,
-                      source_crossings)
+from so_transients.common.bands import FLAVOR_SAMPLE_RATE, get_band
+from so_transients.io.tod_file import TodWriter
+from so_transients.common.pointing import boresight_sightline, horizon_offsets, radec_of_samples
+from so_transients.sim import atmosphere, focal_plane
+from so_transients.sim.cmb import CmbSky, footprint_geometry
+from so_transients.sim.config import SimConfig
+from so_transients.sim.dataset import DatasetWriter, obs_id_for
+from so_transients.sim.glitches import add_glitches, draw_glitches
+from so_transients.sim.imperfections import (
+    DetectorFlaws, draw_flaws, flaws_table, metadata_positions, one_over_f, respond_to_sky,
+    silence_dead
+)
+from so_transients.sim.jumps import add_jumps, draw_jumps
+from so_transients.sim.moving import (
+    MOVING_COLUMNS, draw_moving_sources, moving_crossings, track_table
+)
+from so_transients.sim.scan import boresight, constant_velocity_mask
+from so_transients.sim.sources import (
+    BEAM_REACH_SIGMA, FLARE_COLUMNS, POINT_SOURCE_COLUMNS, PointingContext, add_sources,
+    draw_flares, draw_point_sources, empty_table, source_crossings
+)
 
 DETS_PER_CHUNK = 32
 # component keys of the random streams

@@ -3,7 +3,7 @@
 A source is seen by each detector through a Gaussian beam of the band's FWHM at the detector's
 actual pointing. Pointing is computed only where it matters: for each source, the samples where
 it is active (flares: eq. 1 of the paper is non-zero) are turned into the source's focal-plane
-position (one quaternion per sample, :func:`so_transients.pointing.source_in_focal_plane`), and
+position (one quaternion per sample, :func:`so_transients.common.pointing.source_in_focal_plane`), and
 the beam is evaluated only for samples where the source lies within reach of the detector group.
 
 Random flares follow the paper's injection (section 2.4): the peak time is drawn uniformly from
@@ -22,9 +22,9 @@ import numpy as np
 from astropy import units as u
 from astropy.table import Table
 
-from ..bands import CENTER_GHZ
-from ..lightcurve import active_window, flare_flux
-from ..pointing import angular_distance_xieta, radec_of_samples, source_near
+from so_transients.common.bands import CENTER_GHZ
+from so_transients.common.flare_model import active_window, flare_flux
+from so_transients.common.pointing import angular_distance_xieta, radec_of_samples, source_near
 
 #: A flare's ``s_peak_mjy`` is its peak flux density at this frequency (f090's centre); each
 #: band's is ``s_peak (nu / REFERENCE_GHZ)^spectral_index`` at the band's centre frequency.

@@ -1,0 +1,68 @@
+"""The coherent mode's settings: keys of ``transient_find``'s YAML block, kept apart from the
+paper mode's (:class:`so_transients.detect.find.FindConfig`).
+
+Both dataclasses read the same ``calc`` block (:data:`FIND_CONFIGS`,
+:func:`so_transients.common.step_config.from_yaml_parts`): a key belongs to the one that
+declares it, and a key neither declares is refused.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from so_transients.common.step_config import ConfigError, from_yaml_parts, positive
+from so_transients.coherent.sweep_stack import StackSettings
+from so_transients.coherent.vetoes import Vetoes
+from so_transients.detect.find import FindConfig
+
+
+@dataclass
+class CoherentConfig:
+    coherent_threshold: float = 4.5   # coherent mode: Z of a maximum, in measured spreads
+    row_step: float = 0.8             # ... beam sigmas between rows of positions
+    max_single_share: float = 0.5     # ... veto: one detector makes more of the sum
+    max_instant_share: float = 0.5    # ... veto: detectors crossed at one instant make more
+    chi2_bins: int = 6                # ... veto: chi-squared test over this many detector
+    chi2_tail: float = 1e-3           #     groups, failing this share of noise maxima
+    chi2_mismatch: float = 0.15       #     and allowing this model error (share of Z)
+    hit_reach: float = 2.0            # ... hits: detectors within this many beam sigmas
+    stack_window: float | None = None  # ... s: crossings stacked (None: no sweep stacking)
+    stack_seed: float = 3.0           # ... stacks start from single-crossing maxima this high
+    stack_max_share: float = 0.7      # ... and one crossing makes at most this of their sum
+
+    def __post_init__(self):
+        positive("transient_find", coherent_threshold=self.coherent_threshold,
+                 row_step=self.row_step, max_single_share=self.max_single_share,
+                 max_instant_share=self.max_instant_share, hit_reach=self.hit_reach,
+                 stack_window=self.stack_window, stack_seed=self.stack_seed,
+                 stack_max_share=self.stack_max_share)
+        if self.chi2_bins == 1 or self.chi2_bins < 0 or not 0 < self.chi2_tail < 1 \
+                or self.chi2_mismatch < 0:
+            raise ConfigError(f"transient_find: chi2_bins must be 0 (no test) or 2 or more, "
+                              f"chi2_tail in (0, 1) and chi2_mismatch 0 or more; got "
+                              f"{self.chi2_bins}, {self.chi2_tail}, {self.chi2_mismatch}")
+
+    @property
+    def vetoes(self) -> Vetoes:
+        """The coherent mode's glitch vetoes."""
+        return Vetoes.of(self)
+
+    @property
+    def stacking(self) -> StackSettings | None:
+        """Sweep stacking's settings (with ``stack_window``), or None."""
+        return StackSettings.of(self) if self.stack_window else None
+
+
+#: ``transient_find``'s config dataclasses, in the order :func:`find_settings` returns them
+FIND_CONFIGS = (FindConfig, CoherentConfig)
+
+
+def find_settings(calc, step="transient_find") -> tuple[FindConfig, CoherentConfig]:
+    """``transient_find``'s ``calc`` block (``step``: how errors name it) as its paper-mode
+    and coherent-mode settings."""
+    return from_yaml_parts(FIND_CONFIGS, calc, step)
+
+
+def stacking_of(find: FindConfig, coherent: CoherentConfig) -> StackSettings | None:
+    """Sweep stacking's settings when ``transient_find`` runs in coherent mode with a
+    ``stack_window``, else None."""
+    return coherent.stacking if find.mode == "coherent" else None

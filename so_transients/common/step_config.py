@@ -1,0 +1,92 @@
+"""Reading a transient step's YAML block into its config dataclass, checked at the door.
+
+Each step's settings live in one dataclass (defaults there only, in the units of the YAML
+keys: a key ending in ``_arcmin``, ``_deg`` or ``_hz`` is in that unit, and the dataclass
+offers the radians/Hz value as a property). :func:`from_yaml` converts a YAML mapping into it
+once, when sotodlib builds the pipeline, and refuses a misspelt key or a value of the wrong
+type with one line naming the step and the key, before any data are read.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+
+class ConfigError(ValueError):
+    """A step's config has an unknown key or a value that cannot be used."""
+
+
+def _convert(value, hint, where):
+    """``value`` as the type named by the annotation ``hint`` (a string under PEP 563)."""
+    hint = str(hint).replace(" ", "")
+    optional = hint.endswith("|None") or hint.startswith("None|")
+    base = hint.replace("|None", "").replace("None|", "")
+    if value is None:
+        if optional:
+            return None
+        raise ConfigError(f"{where}: a value is required, got null")
+    try:
+        if base == "float":
+            if isinstance(value, bool):
+                raise TypeError
+            return float(value)
+        if base == "int":
+            if isinstance(value, bool) or float(value) != int(value):
+                raise TypeError
+            return int(value)
+        if base == "bool":
+            if not isinstance(value, bool):
+                raise TypeError
+            return value
+        if base == "str":
+            if not isinstance(value, str):
+                raise TypeError
+            return value
+        if base == "tuple":
+            return tuple(float(v) for v in value)
+        if base == "list":
+            if isinstance(value, str):
+                raise TypeError
+            return list(value)
+        if base == "dict":
+            if not isinstance(value, dict):
+                raise TypeError
+            return dict(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{where}: expected {base}{' or null' if optional else ''}, "
+                          f"got {value!r}") from None
+    return value
+
+
+def from_yaml(cls, cfg, step):
+    """An instance of the dataclass ``cls`` from the YAML mapping ``cfg`` of step ``step``."""
+    return from_yaml_parts((cls,), cfg, step)[0]
+
+
+def from_yaml_parts(classes, cfg, step) -> tuple:
+    """One instance of each dataclass of ``classes`` from the YAML mapping ``cfg`` of step
+    ``step``, whose keys are split between them by field name (one step's settings kept in
+    several dataclasses, e.g. ``transient_find``'s paper-mode and coherent-mode keys)."""
+    cfg = {} if cfg is None or isinstance(cfg, bool) else cfg   # `calc: true`, or no section
+    if not isinstance(cfg, dict):
+        raise ConfigError(f"{step}: the config block must be a mapping of keys, got {cfg!r}")
+    owner = {f.name: (cls, f) for cls in classes for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(set(cfg) - set(owner))
+    if unknown:
+        raise ConfigError(f"{step}: unknown key(s) {', '.join(unknown)}; expected some of "
+                          f"{', '.join(sorted(owner))}")
+    out = []
+    for cls in classes:
+        values = {k: _convert(v, owner[k][1].type, f"{step}: {k}")
+                  for k, v in cfg.items() if owner[k][0] is cls}
+        try:
+            out.append(cls(**values))
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"{step}: {exc}") from None
+    return tuple(out)
+
+
+def positive(step, **values):
+    """Raise a ConfigError naming ``step`` and the key unless every value is > 0."""
+    for key, value in values.items():
+        if value is not None and not value > 0:
+            raise ConfigError(f"{step}: {key} must be positive, got {value}")

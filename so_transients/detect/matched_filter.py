@@ -1,0 +1,538 @@
+"""Per-detector matched filter for point-source crossings (Clancy et al. 2025, section 3.2, eq. 2).
+
+For every detector the filter is
+
+    H(f) = B_hp(f) T(f) / S_n(f)
+
+with ``S_n`` the noise power spectrum estimated from the detector's own spectrum (smoothed in
+logarithmic frequency bins), ``B_hp`` a zero-phase Butterworth high-pass of order 4 at the
+atmospheric knee, and ``T`` the spectrum of a Gaussian of the beam's width in time
+(``sigma_t = sigma_beam / scan speed``). One forward and one inverse real FFT per detector do
+all the work: the PSD and the filtering come from the same spectrum. The rest (edge-line
+removal, binned PSD, weighting, normalization) is fused into single passes over chunks of
+detectors small enough to stay in cache (:mod:`so_transients.detect.spectral_ops`), so the filter runs
+close to the cost of the FFTs alone; ``workers`` threads filter chunks in parallel.
+
+Outputs per sample: the amplitude estimate ``A(t)`` in the signal's units (a Gaussian crossing
+of peak A gives ``A`` at its centre) and the S/N, ``A(t) / sigma_A``. The S/N is normalized by
+its measured robust standard deviation (1.4826 x MAD over valid samples), so its noise has unit
+variance by measurement, not by assumption; the analytic expectation is kept for comparison.
+
+Samples that are not finite or are masked are filled by linear interpolation before the FFT;
+the S/N and amplitude are set to zero there, within ``mask_buffer`` seconds of them, and within
+``edge_buffer`` seconds of either end, so edges and flagged samples never create detections.
+Dead detectors get zero S/N and ``dead = True``: those with no finite, non-constant samples,
+and those whose white-noise level is below ``min_noise_ratio`` or above ``max_noise_ratio``
+times the median of their group's (detectors of one band): a row of zeros that upstream
+filtering turned into ~1e-17 of numerical noise would otherwise weigh 1e30 times more than a
+real detector in every fit, and a detector ten times noisier than the rest adds mostly noise
+to the clustering. They are left out of the median PSD the kernels are computed from.
+
+The PSD is estimated from data that contain any sources. A source therefore weights itself
+down by its share of the power in the frequencies the filter uses: about S/N^2 / n_eff, with
+n_eff the effective number of such frequencies (~13 Hz x duration at f090), so 1.3 % for S/N 10
+in a 10-minute TOD but far more for very bright sources or short TODs. Detectors where this
+estimate exceeds ``bright_bias`` are filtered a second time, with their PSD re-estimated after
+the bright samples are interpolated over; this costs three more FFTs for those detectors only.
+"""
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.fft
+from tqdm.auto import tqdm
+
+from so_transients.detect import spectral_ops
+from so_transients.common.angles import ARCMIN
+from so_transients.common.bands import PAPER_KNEE_HZ, nominal_fwhm_arcmin
+from so_transients.common.robust import mad_std
+
+@dataclass
+class FilterConfig:
+    """Parameters of :func:`matched_filter` (times in seconds, frequencies in Hz), and of the
+    ``transient_filter`` step around it (band field, beam widths, masked flags)."""
+
+    highpass: float | str | None = PAPER_KNEE_HZ   # Hz; None (YAML: "fit"): fit per detector
+    order: int = 4                         # Butterworth order
+    white_band: tuple = (10.0, 30.0)       # band where the PSD is white, for the noise level
+    bins_per_decade: int = 40              # PSD smoothing
+    edge_buffer: float = 5.0
+    mask_buffer: float = 0.2
+    chunk_dets: int = 16                   # detectors per FFT batch (kept in cache)
+    bright_bias: float | None = 0.02       # refilter rows whose source may bias itself more
+    source_mask_snr: float = 3.0           # ... masking samples above this S/N
+    workers: int = 1                       # threads, each filtering its own chunks
+    knee_bounds: tuple = (0.05, 10.0)      # limits of a fitted knee
+    min_noise_ratio: float = 0.01          # detectors quieter than this x the median: dead
+    max_noise_ratio: float = 5.0           # noisier than this x the median: not used
+    bandpass_field: str = "bandpass"       # det_info field holding each detector's band
+    beam_fwhm_arcmin: dict = field(default_factory=dict)   # per band; nominal ones otherwise
+    mask_flags: list = field(default_factory=list)         # aman.flags fields to ignore
+
+    def __post_init__(self):
+        if self.highpass == "fit":
+            self.highpass = None
+        elif self.highpass is not None:
+            try:
+                self.highpass = float(self.highpass)
+            except ValueError:
+                raise ValueError(f"highpass must be a frequency in Hz or 'fit', got "
+                                 f"{self.highpass!r}") from None
+        for key in ("order", "bins_per_decade", "chunk_dets", "workers", "min_noise_ratio",
+                    "max_noise_ratio"):
+            if not getattr(self, key) > 0:
+                raise ValueError(f"{key} must be positive, got {getattr(self, key)}")
+        self.white_band = tuple(self.white_band)
+        unknown = sorted(set(self.beam_fwhm_arcmin) - set(nominal_fwhm_arcmin()))
+        if unknown:
+            raise ValueError(f"beam_fwhm_arcmin: unknown band(s) {unknown}; known: "
+                             f"{sorted(nominal_fwhm_arcmin())}")
+        for band, fwhm in self.beam_fwhm_arcmin.items():
+            if isinstance(fwhm, bool) or not isinstance(fwhm, (int, float)) or fwhm <= 0:
+                raise ValueError(f"beam_fwhm_arcmin: {band} must be a positive number of "
+                                 f"arcmin, got {fwhm!r}")
+
+    def beam_fwhm(self, bands):
+        """Beam FWHM (radians) of detectors in ``bands``: the config's ``beam_fwhm_arcmin``
+        where it names the band, else the nominal one."""
+        table = {**nominal_fwhm_arcmin(), **self.beam_fwhm_arcmin}
+        unknown = sorted(set(bands) - set(table))
+        if unknown:
+            raise ValueError(f"no beam FWHM configured for bandpass {unknown}; add it to "
+                             f"beam_fwhm_arcmin")
+        return np.array([table[b] for b in bands], float) * ARCMIN
+
+
+@dataclass
+class FilterResult:
+    """Outputs of :func:`matched_filter`.
+
+    ``snr`` is the only per-sample array (float32, (ndet, nsamps)): zero wherever nothing may
+    be detected (edges, masked samples, dead detectors). The amplitude timestream is
+    ``snr * sigma_amp`` per detector (:attr:`amplitude` computes it), so it costs no memory.
+    """
+
+    snr: np.ndarray
+    noise_level: np.ndarray                 # white noise per sample, signal units
+    fknee: np.ndarray                       # high-pass frequency used (fixed or fitted), Hz
+    sigma_amp: np.ndarray                   # noise of the amplitude timestream, signal units
+    snr_scale: np.ndarray                   # measured / analytic S/N standard deviation
+    dead: np.ndarray
+    median_psds: dict = field(default_factory=dict)   # group -> median smoothed PSD of its
+    #                                                   live rows (|X|^2 units)
+    nfft: int = 0
+    psd_bins: np.ndarray = field(default=None)     # (ndet, nbins) binned PSD each row used
+    psd_edges: np.ndarray = field(default=None)    # rfft indices of the bins' edges
+    snr_factor: np.ndarray = field(default=None)   # S/N = filtered signal x snr_factor
+
+    @property
+    def valid(self):
+        """Samples that may be detected (bool, (ndet, nsamps))."""
+        return self.snr != 0
+
+    @property
+    def amplitude(self):
+        """Amplitude estimate A(t) in signal units (float32, (ndet, nsamps))."""
+        return self.snr * self.sigma_amp[:, None].astype(np.float32)
+
+
+def gaussian_template_spectrum(nfft, sample_rate, sigma_t):
+    """Real spectrum (rfft) of a unit-peak Gaussian of width ``sigma_t`` centred on sample 0."""
+    n = np.arange(nfft)
+    lag = np.minimum(n, nfft - n) / sample_rate
+    return scipy.fft.rfft(np.exp(-0.5 * (lag / sigma_t) ** 2)).real
+
+
+def butterworth_highpass(freqs, fc, order=4):
+    """Magnitude of a zero-phase Butterworth high-pass; ``fc`` broadcasts against ``freqs``."""
+    with np.errstate(divide="ignore"):
+        ratio = np.where(freqs > 0, (np.asarray(fc)[..., None] / np.maximum(freqs, 1e-300)), np.inf)
+    return 1.0 / np.sqrt(1.0 + ratio ** (2 * order))
+
+
+def _log_bins(nf, bins_per_decade):
+    """Edges of log-spaced frequency bins over rfft indices 1 .. nf (DC excluded)."""
+    decades = np.log10(max(nf - 1, 1))
+    edges = np.unique(np.round(np.logspace(0, decades, int(decades * bins_per_decade) + 2)))
+    edges = edges[edges < nf].astype(np.int64)
+    return np.concatenate([[1], edges[edges > 1], [nf]]).astype(np.int64)
+
+
+def expand_bins(binned, edges):
+    """Per-frequency array (rfft length) from per-bin values; DC gets the first bin's value."""
+    binned = np.atleast_2d(binned)
+    full = np.repeat(binned, np.diff(edges), axis=1)
+    return np.concatenate([binned[:, :1], full], axis=1)
+
+
+def fit_knee(freqs, psd, white, bounds=(0.05, 10.0), white_lo=10.0, counts=None):
+    """Knee of ``white * (1 + (fknee/f)^alpha)`` fitted to a smoothed PSD, per detector.
+
+    Linear fit of ``log(P/white - 1)`` against ``log f`` where the red part is well above and
+    the white part not yet dominant; ``fknee`` is where the fitted red power equals white.
+    ``counts``: number of frequencies each PSD value stands for (binned PSDs), as fit weights.
+    """
+    out = np.full(len(psd), np.nan)
+    sel_f = (freqs > 0) & (freqs < white_lo)
+    logf = np.log(freqs[sel_f])
+    weight = np.sqrt(np.ones(len(freqs)) if counts is None else counts)[sel_f]
+    for i in range(len(psd)):
+        excess = psd[i, sel_f] / white[i] - 1
+        ok = (excess > 0.3) & (excess < 1e4)
+        if ok.sum() < 5:
+            continue
+        slope, offset = np.polyfit(logf[ok], np.log(excess[ok]), 1, w=weight[ok])
+        if slope < 0:
+            out[i] = np.exp(-offset / slope)
+    return np.clip(out, *bounds)
+
+
+def _fill_bad(x, bad):
+    """Linear interpolation across bad samples of the rows of ``x``, in place."""
+    spectral_ops.interpolate_runs(x, np.ascontiguousarray(bad))
+
+
+def _grow(bad, n):
+    """``bad`` (rows, nsamp) widened by ``n`` samples on each side."""
+    return spectral_ops.dilate_rows(np.ascontiguousarray(bad), n) if n else bad
+
+
+class _Spectral:
+    """What every detector chunk shares: FFT length, PSD bins, line spectra, templates."""
+
+    def __init__(self, nsamp, sample_rate, sigma_t, cfg):
+        self.nsamp, self.cfg, self.sample_rate = nsamp, cfg, sample_rate
+        self.nfft = scipy.fft.next_fast_len(nsamp, real=True)
+        self.freqs = scipy.fft.rfftfreq(self.nfft, 1.0 / sample_rate)
+        self.weight = np.full(len(self.freqs), 2.0)
+        self.weight[0] = 1.0
+        if self.nfft % 2 == 0:
+            self.weight[-1] = 1.0
+        white_sel = ((self.freqs >= cfg.white_band[0])
+                     & (self.freqs <= min(cfg.white_band[1], self.freqs[-1])))
+        if not white_sel.any():
+            raise ValueError(f"white_band {cfg.white_band} Hz is outside the spectrum "
+                             f"(Nyquist {self.freqs[-1]:.1f} Hz)")
+        self.edges = _log_bins(len(self.freqs), cfg.bins_per_decade)
+        # frequencies of the white band in each bin, for the white level
+        self.white_weight = np.add.reduceat(white_sel[1:].astype(float), self.edges[:-1] - 1)
+        self.bin_counts = np.diff(self.edges)
+        self.bin_freqs = np.exp(np.add.reduceat(np.log(self.freqs[1:]), self.edges[:-1] - 1)
+                                / self.bin_counts)
+        self.n_edge = int(round(cfg.edge_buffer * sample_rate))
+        self.n_line = max(1, min(nsamp // 4, int(round(sample_rate))))
+        # the spectra of a constant and of a 0..1 ramp over the data: a line removed in Fourier
+        # space is the same as removing it before the FFT, without another pass over the data
+        self.f_ones, self.f_ramp = (
+            scipy.fft.rfft(v, n=self.nfft).astype(np.complex64).view(np.float32)
+            for v in (np.ones(nsamp), np.linspace(0.0, 1.0, nsamp)))
+        self.sigmas = np.unique(sigma_t)
+        self.templates = [gaussian_template_spectrum(self.nfft, sample_rate, s)
+                          for s in self.sigmas]
+        self.fixed = None
+        if cfg.highpass is not None:
+            hp = butterworth_highpass(self.freqs, float(cfg.highpass), cfg.order)
+            self.fixed = self._bases(hp[None, :], np.arange(len(self.sigmas)))
+
+    def _bases(self, hp, template_index):
+        """Weights ``hp T`` per row (or per template) and their bin sums for the normalization."""
+        tmpl = np.stack([self.templates[j] for j in template_index])
+        base = hp * tmpl
+        w = self.weight
+        binned = lambda v: np.add.reduceat(v[:, 1:], self.edges[:-1] - 1, axis=1)
+        bt = binned(w * base * tmpl)
+        return base, bt, binned(w * base**2), binned((w * base * tmpl) ** 2)
+
+    def padded(self, nrows):
+        """A zeroed (nrows, nfft) float32 buffer: rows copied into its first ``nsamp``
+        samples are transformed without the copy the FFT would otherwise make to pad them."""
+        return np.zeros((nrows, self.nfft), np.float32)
+
+    def spectrum(self, x):
+        """rfft of the padded rows ``x`` with the edge line removed, and their binned PSD."""
+        spec = scipy.fft.rfft(x, axis=1, workers=1)
+        n = self.n_line
+        a = x[:, :n].mean(axis=1, dtype=float)
+        c = x[:, self.nsamp - n:self.nsamp].mean(axis=1, dtype=float) - a
+        psd = np.empty((len(x), len(self.edges) - 1))
+        spectral_ops.remove_line_and_bin(spec.view(np.float32), a, c, self.f_ones, self.f_ramp,
+                                         self.edges, psd)
+        white = psd @ self.white_weight / self.white_weight.sum()
+        return spec, psd, white
+
+    def apply(self, spec, psd, white, sigma_t):
+        """Filter ``spec`` in place; returns ``y`` (rows, nfft) and per row the amplitude
+        normalization, Var(y), the high-pass frequency and the effective number of frequencies
+        the filter uses, ``(sum c_f)^2 / sum c_f^2`` with ``c_f`` each frequency's share of the
+        S/N^2 (how much a source's own power can bias its PSD, see :func:`_filter_chunk`)."""
+        cfg = self.cfg
+        tmpl_index = np.searchsorted(self.sigmas, sigma_t)
+        if self.fixed is None:
+            fknee = fit_knee(self.bin_freqs, psd, white, cfg.knee_bounds, cfg.white_band[0],
+                             self.bin_counts)
+            fknee[np.isnan(fknee)] = cfg.knee_bounds[0]
+            base, bt, b2, bt2 = self._bases(butterworth_highpass(self.freqs, fknee, cfg.order),
+                                            tmpl_index)
+            base_index = np.arange(len(psd))
+        else:
+            fknee = np.full(len(psd), float(cfg.highpass))
+            base, bt, b2, bt2 = self.fixed
+            base_index = tmpl_index
+        inv = 1.0 / psd
+        norm = np.einsum("ik,ik->i", inv, bt[base_index]) / self.nfft
+        var_y = np.einsum("ik,ik->i", inv, b2[base_index]) / self.nfft**2
+        n_eff = (norm * self.nfft) ** 2 / np.einsum("ik,ik->i", inv**2, bt2[base_index])
+        spectral_ops.weight_spectrum(spec, base, base_index, inv, self.edges)
+        y = scipy.fft.irfft(spec, n=self.nfft, axis=1, workers=1)
+        return y, norm, var_y, fknee, n_eff
+
+    def robust_sigma(self, y, grown):
+        """Robust standard deviation of each row of ``y`` over its searchable samples."""
+        n0, n1 = self.n_edge, self.nsamp - self.n_edge
+        if n1 - n0 < 20:
+            n0, n1 = 0, self.nsamp
+        stride = max(7, (n1 - n0) // 10000)
+        idx = np.arange(n0, n1, stride)
+        values = y[:, idx]
+        out = mad_std(values, axis=1).astype(float)
+        for i, row in grown.items():
+            good = values[i][~row[idx]]
+            out[i] = mad_std(good) if good.size > 10 else np.nan
+        return out
+
+
+@dataclass
+class _Chunk:
+    """One chunk's per-detector results and the smoothed PSDs of its live detectors."""
+
+    sl: slice
+    fknee: np.ndarray
+    snr_factor: np.ndarray
+    psd_all: np.ndarray
+    sigma_amp: np.ndarray
+    snr_scale: np.ndarray
+    noise_level: np.ndarray
+    dead: np.ndarray
+    psd: np.ndarray
+
+
+def _prepare(sp, signal_rows, mask_rows):
+    """Padded float32 copy of the rows, bad (non-finite or masked) samples interpolated over;
+    and the bad samples ((rows, nsamp) bool, or None when there are none)."""
+    buffer = sp.padded(len(signal_rows))
+    x = buffer[:, :sp.nsamp]
+    x[...] = signal_rows
+    bad = None
+    if not np.isfinite(x.sum(axis=1)).all():
+        bad = ~np.isfinite(x)
+        x[bad] = 0.0
+    if mask_rows is not None and np.any(mask_rows):
+        bad = np.asarray(mask_rows, bool) | (bad if bad is not None else False)
+    if bad is not None:
+        _fill_bad(x, bad)
+    return buffer, bad
+
+
+def _filter_rows(sp, x, bad_rows, sigma_t, out_snr, psd=None, white=None):
+    """Filter rows ``x`` into ``out_snr`` (S/N); returns per-row results and peak |S/N|.
+
+    ``bad_rows``: {row: grown bad-sample mask} of rows with samples that must not be detected.
+    ``psd``/``white``: use this noise model instead of the rows' own spectrum.
+    """
+    spec, own_psd, own_white = sp.spectrum(x)
+    psd = own_psd if psd is None else psd
+    white = own_white if white is None else white
+    dead = white <= 0
+    for i, row in bad_rows.items():
+        dead[i] |= row.all()
+    psd = np.where(dead[:, None], 1.0, psd)
+    y, norm, var_y, fknee, n_eff = sp.apply(spec, psd, np.where(dead, 1.0, white), sigma_t)
+    del spec
+    measured = sp.robust_sigma(y, bad_rows)
+    sigma_y = np.sqrt(var_y)
+    ok = np.isfinite(measured) & (measured > 0)
+    scale = np.where(ok, measured / sigma_y, 1.0)
+    factor = np.where(dead, 0.0, 1.0 / (sigma_y * scale)).astype(np.float32)
+    peak = spectral_ops.scale_rows(y, factor, sp.n_edge, out_snr)
+    for i, row in bad_rows.items():
+        out_snr[i, row] = 0.0
+        peak[i] = np.abs(out_snr[i]).max()
+    return dict(psd=psd, white=white, dead=dead, fknee=fknee, scale=scale, n_eff=n_eff,
+                snr_factor=factor,
+                sigma_amp=np.where(dead, 0.0, sigma_y * scale / norm)), peak
+
+
+def _source_masked_psd(sp, x, snr, sigma_t):
+    """Binned PSD of rows ``x`` with samples above ``source_mask_snr`` (and 2 sigma_t around
+    them) interpolated over: the noise without the source. Interpolated samples carry no
+    white noise, so the PSD is scaled up by the masked fraction (a constant factor per row
+    changes neither the S/N nor the amplitude, only the white level)."""
+    width = int(np.ceil(2 * np.max(sigma_t) * sp.sample_rate))
+    masked = _grow(np.abs(snr) > sp.cfg.source_mask_snr, width)
+    xm = x.copy()          # the caller refilters x itself
+    _fill_bad(xm[:, :sp.nsamp], masked)
+    _, psd, white = sp.spectrum(xm)
+    kept = np.clip(1.0 - masked.mean(axis=1), 0.5, 1.0)
+    return psd / kept[:, None], white / kept
+
+
+def _filter_chunk(sp, signal, mask, sigma_t, sl, out_snr):
+    """Filter the detectors ``sl``; a second pass for rows holding a bright source.
+
+    A source adds its own power to its detector's PSD and so weights itself down, by about
+    ``S/N^2 / n_eff`` of the power in the frequencies the filter uses (``n_eff`` of them, see
+    :meth:`_Spectral.apply`): 0.7 % for S/N 10 in 20 minutes at f090. Rows where this exceeds
+    ``bright_bias`` are filtered again with their PSD estimated with the source masked.
+    """
+    cfg = sp.cfg
+    x, bad = _prepare(sp, signal[sl], None if mask is None else mask[sl])
+    n_mask = int(round(cfg.mask_buffer * sp.sample_rate))
+    bad_rows = ({} if bad is None else
+                {i: _grow(bad[i:i + 1], n_mask)[0] for i in np.flatnonzero(bad.any(axis=1))})
+    snr = out_snr[sl]
+    res, peak = _filter_rows(sp, x, bad_rows, sigma_t[sl], snr)
+    bright = (np.flatnonzero((peak**2 / res["n_eff"] > cfg.bright_bias) & ~res["dead"])
+              if cfg.bright_bias is not None else [])
+    if len(bright):
+        rows, row_sigma_t = x[bright], sigma_t[sl][bright]
+        psd_m, white_m = _source_masked_psd(sp, rows, snr[bright], row_sigma_t)
+        sub_bad = {j: bad_rows[i] for j, i in enumerate(bright) if i in bad_rows}
+        sub_snr = np.empty((len(bright), sp.nsamp), np.float32)
+        again, _ = _filter_rows(sp, rows, sub_bad, row_sigma_t, sub_snr, psd_m, white_m)
+        snr[bright] = sub_snr
+        for key, value in again.items():
+            res[key][bright] = value
+    dead = res["dead"]
+    return _Chunk(sl, res["fknee"], res["snr_factor"], res["psd"].astype(np.float32),
+                  res["sigma_amp"], np.where(dead, np.nan, res["scale"]),
+                  np.where(dead, 0.0, np.sqrt(res["white"] / sp.nsamp)), dead,
+                  res["psd"][~dead])
+
+
+def noise_outliers(noise_level, dead, groups, cfg: FilterConfig):
+    """Live detectors whose white noise is below ``cfg.min_noise_ratio`` or above
+    ``cfg.max_noise_ratio`` times the median of the live detectors of their group."""
+    out = np.zeros(len(noise_level), bool)
+    for g in np.unique(groups):
+        live = np.flatnonzero((groups == g) & ~dead)
+        if not len(live):
+            continue
+        level = noise_level[live]
+        # rows of numerical noise (zeros filtered upstream) must not set the reference
+        reference = np.median(level[level > 1e-6 * np.percentile(level, 75)])
+        ratio = level / reference
+        out[live] = (ratio < cfg.min_noise_ratio) | (ratio > cfg.max_noise_ratio)
+    return out
+
+
+def _exclude(result: FilterResult, rows):
+    """Mark ``rows`` dead in ``result``: no S/N, no amplitude noise, no weight."""
+    result.snr[rows] = 0.0
+    result.dead[rows] = True
+    result.sigma_amp[rows] = 0.0
+    result.snr_factor[rows] = 0.0
+    result.snr_scale[rows] = np.nan
+
+
+def matched_filter(signal, sample_rate, sigma_t, cfg: FilterConfig = FilterConfig(),
+                   mask=None, progress=False, groups=None) -> FilterResult:
+    """Matched-filter every detector of ``signal`` (ndet, nsamps); see the module docstring.
+
+    ``sigma_t``: template width in seconds, scalar or per detector. ``mask``: optional bool
+    array (ndet, nsamps) of samples to ignore. ``groups``: optional label per detector (its
+    band) within which noise levels are compared. The input array is not modified. Chunks of
+    ``cfg.chunk_dets`` detectors are filtered in ``cfg.workers`` threads.
+    """
+    signal = np.asarray(signal)
+    if signal.ndim != 2:
+        raise ValueError(f"signal must be (ndet, nsamps), got shape {signal.shape}")
+    ndet, nsamp = signal.shape
+    sigma_t = np.broadcast_to(np.asarray(sigma_t, dtype=float), (ndet,))
+    if nsamp < 16:
+        raise ValueError(f"only {nsamp} samples: too short to filter")
+    sp = _Spectral(nsamp, sample_rate, sigma_t if ndet else np.ones(1), cfg)
+    snr = np.zeros((ndet, nsamp), np.float32)
+    slices = [slice(s, min(s + cfg.chunk_dets, ndet)) for s in range(0, ndet, cfg.chunk_dets)]
+    work = lambda sl: _filter_chunk(sp, signal, mask, sigma_t, sl, snr)
+    if cfg.workers > 1:
+        with ThreadPoolExecutor(cfg.workers) as pool:
+            chunks = list(tqdm(pool.map(work, slices), total=len(slices), disable=not progress,
+                               desc="matched filter", unit="chunk"))
+    else:
+        chunks = [work(sl) for sl in tqdm(slices, disable=not progress, desc="matched filter",
+                                          unit="chunk")]
+    gather = lambda key: np.concatenate([getattr(c, key) for c in chunks]) if chunks else np.zeros(0)
+    result = FilterResult(snr=snr, noise_level=gather("noise_level"), fknee=gather("fknee"),
+                          sigma_amp=gather("sigma_amp"), snr_scale=gather("snr_scale"),
+                          dead=gather("dead").astype(bool), nfft=sp.nfft,
+                          psd_bins=gather("psd_all"), psd_edges=sp.edges,
+                          snr_factor=gather("snr_factor"))
+    groups = np.zeros(ndet, int) if groups is None else np.asarray(groups)
+    first_dead = result.dead.copy()
+    outliers = noise_outliers(result.noise_level, first_dead, groups, cfg)
+    _exclude(result, np.flatnonzero(outliers))
+    psds = [c.psd for c in chunks if len(c.psd)]
+    if psds:      # the live rows' PSDs, in detector order; outliers left out
+        live_rows = np.flatnonzero(~first_dead)
+        keep = ~outliers[live_rows]
+        live_psd, live_groups = np.concatenate(psds)[keep], groups[live_rows][keep]
+        for g in np.unique(live_groups):
+            rows = live_psd[live_groups == g]
+            result.median_psds[g] = expand_bins(np.median(rows, axis=0), sp.edges)[0]
+    return result
+
+
+def response_kernels(result: FilterResult, sample_rate, sigma_t, groups, order=4):
+    """The filter's response to a crossing for every detector, from its group's (band's)
+    median template width, knee and PSD: ``(lags, response (ndet, nlag), inflation (ndet,))``
+    (:func:`filter_kernels`, :func:`fit_error_inflation`). Rows of groups without a live
+    detector get a zero response and inflation 1."""
+    ndet = len(result.dead)
+    if not result.median_psds:
+        return np.zeros(1), np.ones((ndet, 1)), np.ones(ndet)
+    groups = np.asarray(groups)
+    kernels = {}
+    for g, psd in result.median_psds.items():
+        live = (groups == g) & ~result.dead
+        lags, response, acf = filter_kernels(result.nfft, sample_rate,
+                                             float(np.median(sigma_t[live])),
+                                             float(np.median(result.fknee[live])), psd, order)
+        kernels[g] = (lags, response, fit_error_inflation(response, acf))
+    lags = next(iter(kernels.values()))[0]
+    responses, inflation = np.zeros((ndet, len(lags))), np.ones(ndet)
+    for g, (_, response, infl) in kernels.items():
+        rows = groups == g
+        responses[rows], inflation[rows] = response, infl
+    return lags, responses, inflation
+
+
+def filter_kernels(nfft, sample_rate, sigma_t, fknee, psd, order=4, max_lag=1.0):
+    """Response of the filter to a template-shaped crossing, and the noise autocorrelation.
+
+    For the smoothed PSD ``psd`` (rfft length), returns ``(lags, response, acf)`` for lags
+    within ``max_lag`` seconds: ``response`` is the amplitude timestream produced by a crossing
+    of unit peak centred at lag 0 (1 at lag 0), ``acf`` the correlation of the filtered noise
+    between samples ``lag`` apart (1 at lag 0). Both are symmetric (zero-phase filter).
+    """
+    freqs = scipy.fft.rfftfreq(nfft, 1.0 / sample_rate)
+    tmpl = gaussian_template_spectrum(nfft, sample_rate, sigma_t)
+    gain = butterworth_highpass(freqs, fknee, order) * tmpl / psd
+    gain[0] = 0.0
+    response = scipy.fft.irfft(gain * tmpl, n=nfft)
+    acf = scipy.fft.irfft(gain**2 * psd, n=nfft)
+    n = min(int(round(max_lag * sample_rate)), nfft // 2 - 1)
+    idx = np.arange(-n, n + 1)
+    return idx / sample_rate, response[idx] / response[0], acf[idx] / acf[0]
+
+
+def fit_error_inflation(response, acf):
+    """Factor by which least-squares errors that treat filtered samples as independent are
+    too small, for a fit of the ``response`` shape to noise correlated as ``acf``.
+
+    Var(A_hat) = R^T C R / (R^T R)^2 against the naive 1 / R^T R (unit noise), so the factor is
+    sqrt(R^T (rho * R) / R^T R).
+    """
+    smeared = np.convolve(response, acf, mode="same")
+    return float(np.sqrt(max(np.dot(response, smeared) / np.dot(response, response), 1.0)))

@@ -1,0 +1,10 @@
+"""The transient steps as sotodlib preprocess processes: thin wrappers around the core.
+
+- :mod:`.processes`: ``transient_filter``, ``transient_find``, ``transient_cuts``,
+  ``transient_significance``, ``transient_fit`` (registered on import)
+- :mod:`.step_fields`: the AxisManager fields each step reads
+- :mod:`.slot_storage`: candidate tables stored on the detector axis of the archive
+- :mod:`.plots`: one figure per detection
+
+The only subpackage that knows sotodlib's ``_Preprocess``; nothing below it imports it.
+"""

@@ -1,0 +1,191 @@
+"""Running sotodlib's site preprocess pipeline on a dataset with the transient steps.
+
+sotodlib resolves the preprocess config's paths (``context_file``, ``archive.index``,
+``archive.policy.filename``, ``plot_dir``) against the working directory, so the config written
+into a dataset holds absolute paths of that dataset at the time it is written: a copied or moved
+dataset needs ``so-transients site-config`` again (``make demo`` regenerates it), and
+:func:`check_config` refuses a config inside one dataset that points at another.
+"""
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import yaml
+
+TEMPLATE = Path(__file__).resolve().parents[2] / "configs" / "preprocess_transients.yaml"
+
+
+def archive_index(archive_or_config) -> Path:
+    """The archive index path, from an index (.sqlite) or a preprocess config (.yaml)."""
+    path = Path(archive_or_config)
+    if path.suffix in (".yaml", ".yml"):
+        return Path(read_config(path)["archive"]["index"])
+    return path
+
+
+def read_config(config_path) -> dict:
+    """A preprocess config as a dict; errors name the file."""
+    try:
+        with open(config_path) as f:
+            cfg = yaml.safe_load(f)
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{config_path}: not valid YAML: {exc}") from None
+    if not isinstance(cfg, dict) or "archive" not in cfg or "context_file" not in cfg:
+        raise ValueError(f"{config_path}: not a preprocess config (needs context_file and "
+                         "archive)")
+    return cfg
+
+
+def dataset_context(dataset) -> Path:
+    """``<dataset>/context.yaml``, or a ValueError when the folder holds no dataset."""
+    context = Path(dataset).resolve() / "context.yaml"
+    if not context.is_file():
+        raise ValueError(f"{dataset}: no context.yaml, not a dataset folder (make one with "
+                         "`so-transients simulate`)")
+    return context
+
+
+def check_config(config_path):
+    """Refuse a config sitting in a dataset folder (next to a context.yaml) whose
+    ``context_file`` is another dataset's: a copied dataset whose config still reads, and
+    writes the archive of, the original."""
+    config_path = Path(config_path)
+    here = config_path.resolve().parent / "context.yaml"
+    named = Path(read_config(config_path)["context_file"]).resolve()
+    if here.is_file() and named != here:
+        raise ValueError(f"{config_path}: context_file is {named}, not this dataset's {here} "
+                         f"(copied or moved?): run `so-transients site-config "
+                         f"{config_path.parent}` again")
+
+
+def site_config(dataset, template=TEMPLATE, overrides=None, results=None) -> dict:
+    """The preprocess config ``template`` pointed at ``dataset`` (its context.yaml), with the
+    archive and plots in ``results`` (default ``<dataset>/preprocess``), as absolute paths
+    (see the module's note). ``overrides``: {step name: {section: dict}} merged into the
+    matching ``process_pipe`` entries."""
+    dataset = dataset_context(dataset).parent
+    with open(template) as f:
+        cfg = yaml.safe_load(f)
+    out = Path(results).resolve() if results is not None else dataset / "preprocess"
+    cfg["context_file"] = str(dataset / "context.yaml")
+    cfg["plot_dir"] = str(out / "plots")
+    cfg["archive"]["index"] = str(out / "process_archive.sqlite")
+    cfg["archive"]["policy"]["filename"] = str(out / "preprocess_archive.h5")
+    apply_overrides(cfg["process_pipe"], overrides)
+    return cfg
+
+
+def apply_overrides(process_pipe, overrides=None):
+    """Merge ``overrides`` ({step name: {section: dict or value}}) into the matching entries
+    of ``process_pipe`` in place: dict sections are updated, other values replaced."""
+    for step in process_pipe:
+        for section, values in (overrides or {}).get(step["name"], {}).items():
+            if isinstance(values, dict) and isinstance(step.get(section), dict):
+                step[section].update(values)
+            else:
+                step[section] = values
+    return process_pipe
+
+
+def write_site_config(dataset, path=None, template=TEMPLATE, overrides=None,
+                      results=None) -> Path:
+    """Write :func:`site_config` to ``path`` (default ``<dataset>/preprocess.yaml``)."""
+    cfg = site_config(dataset, template, overrides, results)
+    path = Path(path or Path(dataset) / "preprocess.yaml")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w") as f:
+        yaml.safe_dump(cfg, f, sort_keys=False)
+    return path
+
+
+#: Variables an MPI launcher (MPICH's hydra, Open MPI, PMIx) sets for its ranks.
+MPI_LAUNCHER_PREFIXES = ("PMI_", "PMIX_", "OMPI_", "HYDRA_", "MPI_LOCALNRANKS",
+                         "MPI_LOCALRANKID")
+
+
+def standalone_env():
+    """This process's environment without its MPI launcher's variables: a subprocess started
+    from an MPI rank would otherwise try to join that rank's job and fail at MPI start-up."""
+    return {k: v for k, v in os.environ.items() if not k.startswith(MPI_LAUNCHER_PREFIXES)}
+
+
+#: The site pipeline's log of failed groups, next to the archive index, and the previous run's.
+ERRLOG = "errlog.txt"
+PREVIOUS_ERRLOG = "errlog.prev.txt"
+
+
+def run_site_pipeline(config_path, nproc=1, extra_args=(), check=True):
+    """sotodlib's ``preprocess_tod`` on ``config_path`` in a subprocess (:mod:`.site_run`).
+
+    The site pipeline logs failed groups to ``errlog.txt`` next to the archive index and still
+    exits 0, so callers must inspect the archive (see :mod:`so_transients.site.results`). Each run
+    starts a fresh errlog: an earlier one is moved to ``errlog.prev.txt``, so that groups which
+    failed before and succeed now are not reported as failed. The progress-bar file
+    (pb_<ctime>.txt) is written to a temporary folder and dropped, and an empty ``temp/`` left
+    next to the archive is removed. It runs as its own job even when called from an MPI rank
+    (:func:`standalone_env`).
+    """
+    check_config(config_path)
+    env = standalone_env()
+    env.setdefault("OMP_WAIT_POLICY", "passive")
+    env.setdefault("OMP_NUM_THREADS", "1")
+    archive_dir = archive_index(config_path).parent
+    archive_dir.mkdir(parents=True, exist_ok=True)
+    errlog = archive_dir / ERRLOG
+    if errlog.exists():
+        errlog.replace(archive_dir / PREVIOUS_ERRLOG)
+    with tempfile.TemporaryDirectory(prefix="so_transients_pb_") as pb_dir:
+        cmd = [sys.executable, "-m", "so_transients.site.run", str(config_path),
+               "--nproc", str(nproc), "--verbosity", "1", "--pb-path", pb_dir, *extra_args]
+        try:
+            return subprocess.run(cmd, env=env, check=check, capture_output=True, text=True)
+        finally:
+            remove_empty_leftovers(config_path)
+
+
+def remove_empty_leftovers(config_path):
+    """Remove the empty ``temp/`` folder sotodlib leaves next to the archive file."""
+    policy_dir = Path(read_config(config_path)["archive"]["policy"]["filename"]).parent
+    temp = policy_dir / "temp"
+    if temp.is_dir() and not any(temp.iterdir()):
+        temp.rmdir()
+
+
+def failed_groups(config_path) -> str:
+    """Text of the site pipeline's errlog (failed groups of the last run), '' when none."""
+    errlog = archive_index(config_path).parent / ERRLOG
+    return errlog.read_text() if errlog.exists() else ""
+
+
+def errlog_entries(archive_dir) -> dict:
+    """{(obs_id, group tuple): (error type, first line of the message)} from the errlog in
+    ``archive_dir``; a group logged twice keeps its latest entry.
+
+    sotodlib writes each failure as ``<ctime>, <obs_id>, <group list>, <error type>`` and a
+    tab-indented message with its traceback."""
+    errlog = Path(archive_dir) / ERRLOG
+    entries, key = {}, None
+    for line in (errlog.read_text().splitlines() if errlog.exists() else []):
+        header = ERRLOG_HEADER.match(line)
+        if header:
+            key = (header["obs_id"], _group_tuple(header["group"]))
+            entries[key] = (header["kind"], "")
+        elif key is not None and line.startswith("\t") and not entries[key][1]:
+            # the message, then the traceback on the same line: keep the message
+            message = line.strip().split('  File "')[0].strip()
+            entries[key] = (entries[key][0], message)
+    return entries
+
+
+#: A failure's first line in sotodlib's errlog: ``<ctime>, <obs_id>, <group>, <error type>``.
+ERRLOG_HEADER = re.compile(r"^[\d.]+, (?P<obs_id>\S+), (?P<group>.*), (?P<kind>\w+)$")
+
+
+def _group_tuple(text) -> tuple:
+    """``['w16', 'f090']`` or ``[np.str_('w16'), ...]`` as written by sotodlib -> ('w16', 'f090')."""
+    return tuple(re.findall(r"'([^']*)'", text))

@@ -1,0 +1,275 @@
+"""Reading transient results back: one astropy table from a preprocess archive or observation.
+
+Two ways in, both giving the same table:
+
+* :func:`archive_table` walks the archive's ManifestDb and loads each group's saved
+  AxisManager on its own (how sotodlib stores per-group outputs);
+* :func:`observation_table` loads a whole observation through the Context (all groups
+  concatenated along ``dets``), which works because candidates are stored on the detector axis
+  (:mod:`so_transients.preprocess.slot_storage`).
+
+The columns are those of :mod:`so_transients.common.candidates`, with their units (mJy for fluxes,
+rad for positions, s of ctime for times) and descriptions, after ``obs_id``.
+:func:`write_table` adds degrees, arcseconds and UTC beside them (:func:`with_readable_columns`)
+and the provenance block (:mod:`so_transients.site.provenance`).
+
+:func:`archive_status` says which groups are missing from an archive and why. sotodlib appends
+to ``errlog.txt`` across runs; :func:`so_transients.site.pipeline.run_site_pipeline` moves an earlier
+errlog aside, and :func:`archive_status` only reports errlog entries of groups that are not in
+the archive, so a group that failed once and then succeeded is never reported as failed.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from astropy.table import Column, Table, vstack
+from astropy.time import Time
+from sotodlib import core
+from sotodlib.core.metadata import ManifestDb
+
+from so_transients.common import candidates
+from so_transients.site.provenance import attach, provenance
+from so_transients.site.pipeline import archive_index, check_config, errlog_entries, read_config
+from so_transients.preprocess.slot_storage import unpack
+
+#: Columns of every table read back, in order.
+FIRST = ["obs_id"] + candidates.names(saved=True)
+
+
+def amplitude(aman, dets=slice(None), lo=None, hi=None):
+    """Amplitude timestream (signal units, mJy) of detectors ``dets``, samples ``lo:hi``: the
+    S/N of ``transient_filter`` times each detector's ``sigma_amp``."""
+    sigma = np.asarray(aman.transient_filter.sigma_amp, np.float32)[dets]
+    return np.asarray(aman.transient_snr[dets, lo:hi]) * sigma[:, None]
+
+
+def _empty_table() -> Table:
+    return candidates.table({"obs_id": np.zeros(0, str), **candidates.empty()}, first=["obs_id"])
+
+
+def proc_table(proc_aman, obs_id="", wafer_slot=None) -> Table:
+    """Rows of every candidate stored in ``proc_aman`` (one group or several concatenated)."""
+    parts = {name: unpack(proc_aman[name]) for name in candidates.STEPS
+             if name in proc_aman._fields}
+    base = parts.get("transient_find")
+    if base is None or not len(base["cand_id"]):
+        return _empty_table()
+    rows = {}
+    for name, part in parts.items():
+        if not np.array_equal(part["cand_id"], base["cand_id"]):
+            raise ValueError(f"{obs_id}: {name} is not aligned with transient_find")
+        rows.update(part)
+    rows.pop("det")
+    n = len(base["cand_id"])
+    rows["obs_id"] = np.full(n, obs_id)
+    if "wafer_slot" not in rows:
+        rows["wafer_slot"] = np.full(n, wafer_slot or "")
+    return candidates.table(rows, first=["obs_id"])
+
+
+def archive_entries(index_path):
+    """(obs_id, group tags, absolute h5 filename, dataset) for every group in an archive."""
+    index_path = Path(index_path)
+    if not index_path.is_file():     # ManifestDb would create an empty one
+        raise FileNotFoundError(f"{index_path}: no preprocess archive index (has the site "
+                                "pipeline run with this config?)")
+    db = ManifestDb(str(index_path))
+    out = []
+    for entry in db.inspect():
+        filename = entry["filename"]
+        if not os.path.isabs(filename):
+            filename = str(index_path.parent / filename)
+        tags = {k.split(":", 1)[1]: v for k, v in entry.items() if k.startswith("dets:")}
+        out.append((entry["obs:obs_id"], tags, filename, entry["dataset"]))
+    return out
+
+
+def archive_table(archive_or_config, detected_only=True) -> Table:
+    """Every group of every observation in an archive, one group at a time, as one table."""
+    tables = []
+    for obs_id, tags, filename, dataset in archive_entries(archive_index(archive_or_config)):
+        proc = core.AxisManager.load(filename, dataset)
+        tables.append(proc_table(proc, obs_id, tags.get("wafer_slot")))
+    table = vstack(tables) if tables else _empty_table()
+    if not len(table):
+        table = _empty_table()
+    return table[np.asarray(table["detected"], bool)] if detected_only else table
+
+
+#: Per-group scalars sotodlib's Pipeline saves in every group (NaN without an IIR filter):
+#: they differ (NaN != NaN) between groups, so a whole-observation load cannot merge them.
+PER_GROUP_SCALARS = ("frequency_cutoffs",)
+
+
+def _get_meta_dropping(context, obs_id, fields):
+    """``context.get_meta(obs_id)`` with ``fields`` dropped from the preprocess archive's
+    entry (the context itself is left as it was)."""
+    entries = context["metadata"]
+    context["metadata"] = [
+        dict(e, drop_fields=list(e.get("drop_fields", [])) + list(fields))
+        if "preprocess" in (e.get("name"), e.get("label"), e.get("unpack")) else e
+        for e in entries]
+    try:
+        return context.get_meta(obs_id)
+    finally:
+        context["metadata"] = entries
+
+
+def observation_table(context, obs_id, detected_only=True) -> Table:
+    """The whole observation's candidates through the Context (all groups at once).
+
+    ``context`` must have the preprocess archive among its metadata (as
+    ``sotodlib.preprocess.preprocess_util.get_preprocess_context`` arranges).
+    """
+    meta = _get_meta_dropping(context, obs_id, PER_GROUP_SCALARS)
+    table = proc_table(meta.preprocess, obs_id)
+    return table[np.asarray(table["detected"], bool)] if detected_only else table
+
+
+def config_of(archive_or_config):
+    """The preprocess config of an archive: the .yaml given, or for an index the dataset's
+    ``preprocess.yaml`` (two folders up) when it names that index; None when unknown."""
+    path = Path(archive_or_config)
+    if path.suffix in (".yaml", ".yml"):
+        return path
+    guess = path.resolve().parent.parent / "preprocess.yaml"
+    if guess.is_file() and archive_index(guess).resolve() == path.resolve():
+        return guess
+    return None
+
+
+def expected_groups(config) -> set:
+    """{(obs_id, group)} the site pipeline runs for ``config``: every observation of the
+    ObsDb times the groups of its ``subobs.use`` fields (here one per wafer and band), as
+    sotodlib's ``get_groups`` makes them (groups with a field ``NC`` are never run)."""
+    from sotodlib.preprocess import preprocess_util as pp_util
+
+    cfg = read_config(config)
+    context = core.Context(cfg["context_file"])
+    out = set()
+    for obs in context.obsdb.query():
+        _, groups, error = pp_util.get_groups(obs["obs_id"], cfg, context)
+        if error[0] is not None:
+            raise ValueError(f"{config}: {obs['obs_id']}: cannot list its groups: {error[1]}")
+        out |= {(obs["obs_id"], tuple(str(g) for g in group)) for group in groups
+                if "NC" not in group}
+    return out
+
+
+def group_fields(config, entries) -> list:
+    """The ``subobs.use`` fields of ``config``, else the archive entries' tag names."""
+    if config is not None:
+        use = read_config(config).get("subobs", {}).get("use", "detset")
+        return [u.split(":", 1)[-1] for u in np.atleast_1d(use)]
+    return sorted(entries[0][1]) if entries else []
+
+
+@dataclass
+class ArchiveStatus:
+    """What an archive holds against what the site pipeline should have made."""
+
+    index: Path
+    config: Path | None
+    archived: set
+    expected: set | None                    # None: no config to list them from
+    failed: dict = field(default_factory=dict)   # {(obs_id, group): (error type, message)}
+
+    @property
+    def complete(self) -> bool:
+        return not self.failed and (self.expected is None or self.expected <= self.archived)
+
+    @property
+    def obs_ids(self) -> list:
+        return sorted({obs for obs, _ in (self.expected or set()) | self.archived})
+
+    def report(self) -> str:
+        """A few lines: groups expected, archived, and each failed one with its reason."""
+        expected = "unknown (give the preprocess config)" if self.expected is None \
+            else len(self.expected)
+        lines = [f"Archive {self.index}: groups expected {expected}, in the archive "
+                 f"{len(self.archived)}, failed {len(self.failed)}"]
+        for (obs_id, group), (kind, message) in sorted(self.failed.items()):
+            lines.append(f"  FAILED {obs_id} {'/'.join(group)}: {kind}: {message}")
+        return "\n".join(lines)
+
+
+def archive_status(archive_or_config) -> ArchiveStatus:
+    """Groups expected (:func:`expected_groups`), archived, and failed with the reason from
+    the errlog (groups in the errlog and not in the archive; with a config, also groups
+    expected and in neither)."""
+    config = config_of(archive_or_config)
+    if config is not None:
+        check_config(config)
+    index = archive_index(archive_or_config)
+    entries = archive_entries(index)
+    fields = group_fields(config, entries)
+    archived = {(obs, tuple(str(tags[f]) for f in fields)) for obs, tags, _, _ in entries}
+    expected = expected_groups(config) if config is not None else None
+    errors = errlog_entries(index.parent)
+    missing = (expected or set()) - archived
+    failed = {k: errors.get(k, ("missing", "not in the archive and not in errlog.txt"))
+              for k in missing}
+    failed.update({k: v for k, v in errors.items() if k not in archived})
+    return ArchiveStatus(index, config, archived, expected, failed)
+
+
+def utc(ctime) -> np.ndarray:
+    """ISO UTC strings of ctimes (seconds)."""
+    ctime = np.atleast_1d(np.asarray(ctime, np.float64))
+    return Time(ctime, format="unix").isot if len(ctime) else np.zeros(0, "U23")
+
+
+def with_readable_columns(table: Table) -> Table:
+    """A copy with ``ra_deg``, ``dec_deg`` (deg), ``ra_err_arcsec``, ``dec_err_arcsec``
+    (arcsec) after ``dec_err`` and ``t_peak_utc`` (ISO UTC) after ``t_peak``; the radian and
+    ctime columns are kept as the archive has them."""
+    out = table.copy()
+    derived = [("ra_deg", "ra", "deg", 1.0, "RA in degrees (ra)"),
+               ("dec_deg", "dec", "deg", 1.0, "Dec in degrees (dec)"),
+               ("ra_err_arcsec", "ra_err", "arcsec", 3600.0, "ra_err in arcseconds"),
+               ("dec_err_arcsec", "dec_err", "arcsec", 3600.0, "dec_err in arcseconds")]
+    at = out.colnames.index("dec_err") + 1
+    for i, (name, src, unit, scale, text) in enumerate(derived):
+        values = np.degrees(np.asarray(out[src], np.float64)) * scale
+        out.add_column(Column(values, name=name, unit=unit, description=text), index=at + i)
+    out.add_column(Column(utc(out["t_peak"]), name="t_peak_utc",
+                          description="t_peak as ISO UTC"),
+                   index=out.colnames.index("t_peak") + 1)
+    return out
+
+
+#: Output formats by file suffix.
+FORMATS = {".ecsv": "ascii.ecsv", ".fits": "fits", ".fit": "fits", ".csv": "ascii.csv"}
+
+
+def output_format(path, overwrite=False) -> str:
+    """The astropy format of ``path`` (by suffix); refuses an existing file unless
+    ``overwrite``."""
+    path = Path(path)
+    fmt = FORMATS.get(path.suffix.lower())
+    if fmt is None:
+        raise ValueError(f"{path}: unknown table suffix {path.suffix!r}; use one of "
+                         f"{sorted(FORMATS)}")
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} exists: not overwritten (use --overwrite or another "
+                              "file name)")
+    return fmt
+
+
+def write_table(table: Table, path, config=None, obs_ids=None, overwrite=False) -> Path:
+    """Write ECSV, FITS or CSV (chosen by the suffix) with :func:`with_readable_columns` and
+    the provenance of ``config`` and ``obs_ids`` (default: the table's) in the metadata.
+    Booleans stay booleans in every format (FITS logical columns). CSV carries the provenance
+    as ``# key: value`` lines: read it with ``Table.read(path, format="ascii.csv",
+    comment="#")`` (pandas: ``comment="#"``)."""
+    path = Path(path)
+    fmt = output_format(path, overwrite)
+    obs_ids = table["obs_id"] if obs_ids is None else obs_ids
+    out = attach(with_readable_columns(table), fmt, provenance(config, obs_ids))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    extra = {"comment": "# "} if fmt == "ascii.csv" else {}
+    out.write(path, format=fmt, overwrite=overwrite, **extra)
+    return path

@@ -1,0 +1,1 @@
+"""Tests of so_transients.common."""

@@ -123,9 +123,9 @@ def background_tables(folders: dict):
                      b.scale, np.nan if b.tail_from is None else b.tail_from, b.floor,
                      b.slide_floor, b.stacks is not None, b.stack_slide_hours))
     maxima = Table(rows=maxima or None, names=("band", "kind", "z", "consistent"),
-                   dtype=("U8", "U12", float, bool))
+                   dtype=(str, str, float, bool))
     live = Table(rows=live or None, names=LIVE_COLUMNS,
-                 dtype=("U8", "U64", "U8", float, float, float, float, float, float, bool,
+                 dtype=(str, str, str, float, float, float, float, float, float, bool,
                         float))
     for name in ("slide_hours", "data_hours", "stack_slide_hours"):
         live[name].unit = u.hour

@@ -1,0 +1,460 @@
+"""Sphinx extension: the transient steps' config keys and the candidate columns, from the code.
+
+Directives
+----------
+``.. step-config:: transient_find``
+    One table per config dataclass of the step: every key (YAML name), its default, unit and
+    meaning. Keys and defaults come from ``dataclasses.fields``; the meaning is the trailing
+    ``# comment`` of the field's source line (with its continuation lines), or else the comment
+    of the key in the step's docstring example block. Each row carries the HTML id
+    ``config-<step>-<key>`` (underscores as hyphens), which :func:`missing_from_docs` looks for.
+``.. candidate-columns::``
+    Every candidate column of :data:`so_transients.common.candidates.SCHEMA` saved to the
+    archive: name, step, unit, meaning; row ids ``column-<name>``.
+
+Checking the built pages
+------------------------
+:func:`missing_from_docs` takes the folder of a built HTML tree and returns the
+``(step, key)`` pairs missing from it: ``(step, None)`` when a registered ``transient_*``
+step has no ``autoclass`` entry, and ``(step, key)`` for every key of its config dataclasses
+or of its docstring's example block that has no row. :func:`missing_columns` does the same
+for the candidate columns. The pytest file calls them after ``sphinx-build``.
+"""
+from __future__ import annotations
+
+import ast
+import dataclasses
+import importlib
+import inspect
+import io
+import re
+import textwrap
+import tokenize
+from dataclasses import dataclass
+from html.parser import HTMLParser
+from pathlib import Path
+
+from docutils import nodes
+from docutils.parsers.rst import directives
+
+STEP_PREFIX = "transient_"
+
+#: Config dataclasses of each step, in the order their keys are documented. A registered step
+#: missing here is looked up from the ``from_yaml(<Class>, ...)`` calls in its class's source.
+STEP_CONFIGS = {
+    "transient_filter": ("so_transients.detect.matched_filter.FilterConfig",),
+    "transient_find": ("so_transients.detect.find.FindConfig",
+                       "so_transients.coherent.config.CoherentConfig"),
+    "transient_cuts": ("so_transients.detect.cuts.CutsConfig",),
+    "transient_significance": ("so_transients.significance.far.SignificanceConfig",),
+    "transient_fit": ("so_transients.detect.fit.FitConfig",),
+}
+
+#: Units the key's name and comment do not give (a key ending in ``_arcmin``, ``_deg``,
+#: ``_hz``, ``_s``, ``_arcsec``, ``_mjy`` or ``_arcmin_per_min`` has that unit, and a comment
+#: opening with ``s``, ``Hz``, ``deg`` or ``mJy`` names it).
+UNITS = {
+    "transient_filter": {"white_band": "Hz", "edge_buffer": "s", "mask_buffer": "s",
+                         "knee_bounds": "Hz"},
+    "transient_find": {"snr_threshold": "S/N", "coherent_threshold": "Z",
+                       "row_step": "beam sigma", "hit_reach": "beam sigma",
+                       "stack_seed": "Z", "turnaround_buffer": "s"},
+    "transient_cuts": {},
+    "transient_significance": {"slide_gate": "Z", "row_step": "beam sigma",
+                               "background_floor": "Z", "slide_floor": "Z",
+                               "peak_window": "beam-crossing times", "max_far": "1 / h",
+                               "tail_from": "Z"},
+    "transient_fit": {"window": "s", "cross_scan_sigma": "beam sigma", "min_snr": "S/N"},
+}
+
+#: Meanings for keys whose source comment is missing or does not read on its own (it
+#: continues the previous field's); these take precedence.
+MEANINGS = {
+    "transient_filter": {
+        "highpass": "high-pass frequency of the 4th-order Butterworth (the atmospheric knee); "
+                    "\"fit\": a knee fitted per detector",
+        "edge_buffer": "seconds at each end of the TOD where nothing is detected",
+        "mask_buffer": "seconds around masked or non-finite samples where nothing is detected",
+        "bright_bias": "detectors whose own source may bias their PSD by more than this "
+                       "fraction are filtered again with it masked (null: never)",
+        "source_mask_snr": "... masking the samples above this S/N",
+    },
+    "transient_find": {
+        "min_cluster_samples": "fewest samples of a cluster (the paper's \"more than 10\")",
+        "snr_threshold": "paper mode: samples with matched-filter S/N at least this are "
+                         "clustered",
+        "speed_tolerance": "samples scanning further than this fraction off the nominal "
+                           "scan speed are not searched",
+        "turnaround_buffer": "seconds left out around those samples (turnarounds)",
+        "min_dets": "fewest detectors of a candidate (paper mode: of a cluster; coherent "
+                    "mode: live detectors a band needs)",
+        "chi2_bins": "coherent veto: chi-squared test over this many detector groups "
+                     "(0: no test)",
+        "chi2_tail": "chi-squared test: the share of noise maxima it fails",
+        "chi2_mismatch": "chi-squared test: model error allowed, as a share of Z",
+        "max_single_share": "coherent veto: a maximum one detector makes more than this "
+                            "share of is removed",
+        "max_instant_share": "coherent veto: a maximum the detectors crossed at one instant "
+                             "make more than this share of is removed (a cosmic ray)",
+        "stack_max_share": "sweep stacking: no crossing may make more than this share of a "
+                           "stack's sum",
+    },
+    "transient_cuts": {
+        "min_aspect_ratio": "detectors must form a line along the scan: focal-plane extent "
+                            "along / across the scan at least this",
+        "sidelobe_window": "seconds around the candidate's peaks searched for a signal of "
+                           "opposite sign",
+        "max_opposite_ratio": "cut when that signal is this many times stronger (a filter "
+                              "sidelobe of a strong negative signal)",
+        "pol_fraction": "polarization flag (not a cut) when at least this fraction of the "
+                        "detectors share one orientation",
+    },
+    "transient_significance": {
+        "seed": "seed of the time slides' random offsets and groups",
+        "sidelobe_window": "seconds: sign-inverted maxima this close to a data maximum ...",
+        "max_opposite_ratio": "... this many times higher are its filter sidelobe, left out "
+                              "of the background",
+    },
+    "transient_fit": {
+        "seed": "seed of the random null positions",
+    },
+}
+
+_SUFFIX_UNITS = (("_arcmin_per_min", "arcmin / min"), ("_arcmin", "arcmin"),
+                 ("_arcsec", "arcsec"), ("_deg", "deg"), ("_hz", "Hz"), ("_mjy", "mJy"),
+                 ("_s", "s"))
+_COMMENT_UNIT = re.compile(r"^(s|Hz|deg|mJy)(?=[,;:)\s]|$)")
+
+
+@dataclass(frozen=True)
+class ConfigKey:
+    """One YAML key of a step: its dataclass, default (as YAML shows it), unit and meaning."""
+
+    step: str
+    name: str
+    owner: str
+    default: str
+    unit: str
+    meaning: str
+
+
+# ------------------------------------------------------------------------ from the code
+
+def registered_steps() -> dict:
+    """``{name: process class}`` of sotodlib's preprocess registry entries named
+    ``transient_*``, in registration order (importing ``so_transients`` registers them)."""
+    import so_transients  # noqa: F401
+    from sotodlib.preprocess import Pipeline
+
+    return {name: cls for name, cls in Pipeline.PIPELINE.items()
+            if name.startswith(STEP_PREFIX)}
+
+
+def _resolve(dotted):
+    module, _, name = dotted.rpartition(".")
+    return getattr(importlib.import_module(module), name)
+
+
+def config_classes(step) -> list:
+    """The config dataclasses of ``step`` (:data:`STEP_CONFIGS`, else the ``from_yaml``
+    calls in its process class)."""
+    if step in STEP_CONFIGS:
+        return [_resolve(d) for d in STEP_CONFIGS[step]]
+    cls = registered_steps()[step]
+    names = re.findall(r"from_yaml\(\s*(\w+)", inspect.getsource(cls))
+    scope = vars(inspect.getmodule(cls))
+    return [scope[n] for n in dict.fromkeys(names) if n in scope
+            and dataclasses.is_dataclass(scope[n])]
+
+
+def _field_comments(cls) -> dict:
+    """``{field: (comment, continues_previous)}`` from the class source: the trailing comment
+    of each field's line(s) plus the comment-only lines that continue it."""
+    source = textwrap.dedent(inspect.getsource(cls))
+    comments = {}
+    for tok in tokenize.generate_tokens(io.StringIO(source).readline):
+        if tok.type == tokenize.COMMENT:
+            comments[tok.start[0]] = (tok.string[1:], tok.line.strip().startswith("#"))
+    body = ast.parse(source).body[0].body
+    lines = [(node.target.id, node.lineno, node.end_lineno) for node in body
+             if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)]
+    starts = [lo for _, lo, _ in lines[1:]] + [len(source.splitlines()) + 1]
+    out = {}
+    for (name, lo, hi), nxt in zip(lines, starts):
+        own = [comments[n][0] for n in range(lo, hi + 1) if n in comments]
+        if not own:
+            continue
+        text = own[-1]
+        n = hi + 1
+        while n < nxt and n in comments and comments[n][1] and comments[n][0][:2] == "  ":
+            text += " " + comments[n][0]
+            n += 1
+        out[name] = (text, own[-1][:2] == "  ")
+    return out
+
+
+def example_block(process_cls) -> dict:
+    """``{key: comment}`` of the example config block in a process class's docstring (the
+    literal block after a line ending in ``::`` that holds ``- name:``)."""
+    doc = inspect.getdoc(process_cls) or ""
+    match = re.search(r"::\n\n((?:[ \t]+.*\n?|\n)+)", doc)
+    out = {}
+    while match:
+        block = textwrap.dedent(match.group(1))
+        if "- name:" in block:
+            key = None
+            for line in block.splitlines():
+                m = re.match(r"^(\s*)(\w+):\s*([^#]*?)\s*(?:#(.*))?$", line)
+                if m and len(m.group(1)) >= 4:
+                    key = m.group(2)
+                    out[key] = (m.group(4) or "").strip()
+                elif key and re.match(r"^\s*#", line):
+                    out[key] = (out[key] + " " + line.strip()[1:].strip()).strip()
+                elif m:
+                    key = None
+            return out
+        match = re.search(r"::\n\n((?:[ \t]+.*\n?|\n)+)", doc[match.end():])
+    return out
+
+
+def _clean(text, unit=""):
+    """A comment as a table cell: one line, no leading or trailing "...", YAML's null for
+    None, and without a leading unit the unit column shows."""
+    text = " ".join(text.split())
+    text = re.sub(r"^\.\.\.\s*", "", text)
+    text = re.sub(r"\s*\.\.\.$", "", text)
+    text = re.sub(r"\bNone\b", "null", text)
+    if unit and text.startswith(unit):
+        text = re.sub(r"^" + re.escape(unit) + r"[,;:]?\s+", "", text)
+    return text
+
+
+def _yaml(value):
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_yaml(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{k}: {_yaml(v)}" for k, v in value.items()) + "}"
+    return str(value)
+
+
+def _default(f):
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return dataclasses.MISSING
+
+
+def _unit(step, name, *comments):
+    if name in UNITS.get(step, {}):
+        return UNITS[step][name]
+    for suffix, unit in _SUFFIX_UNITS:
+        if name.endswith(suffix):
+            return unit
+    for comment in comments:
+        m = _COMMENT_UNIT.match(_clean(comment or ""))
+        if m:
+            return m.group(1)
+        if "per wafer-band-hour" in (comment or ""):
+            return "1 / h"
+    return ""
+
+
+def _fields(cls):
+    """(field, its dataclass) of every YAML key of ``cls``, nested dataclasses flattened."""
+    for f in dataclasses.fields(cls):
+        if not f.init:
+            continue
+        default = _default(f)
+        if dataclasses.is_dataclass(default) and not isinstance(default, type):
+            yield from _fields(type(default))
+        else:
+            yield f, cls
+
+
+def config_keys(step) -> list:
+    """Every key of ``step``'s config dataclasses as :class:`ConfigKey`, in source order."""
+    steps = registered_steps()
+    example = example_block(steps[step]) if step in steps else {}
+    out, seen = [], set()
+    for cls in config_classes(step):
+        comments = {}
+        for klass in {c for _, c in _fields(cls)}:
+            comments.update(_field_comments(klass))
+        for f, owner in _fields(cls):
+            if f.name in seen:
+                continue
+            seen.add(f.name)
+            own, continues = comments.get(f.name, ("", False))
+            doc = example.get(f.name, "")
+            unit = _unit(step, f.name, own, doc)
+            if f.name in MEANINGS.get(step, {}):
+                meaning = MEANINGS[step][f.name]
+            elif own and not continues:
+                meaning = _clean(own, unit)
+            else:
+                meaning = _clean(doc or own, unit)
+            default = _default(f)
+            out.append(ConfigKey(step, f.name, f"{owner.__module__}.{owner.__qualname__}",
+                                 "" if default is dataclasses.MISSING else _yaml(default),
+                                 unit, meaning))
+    return out
+
+
+def documented_keys(step) -> list:
+    """The keys the pages must show for ``step``: its dataclasses' and its docstring
+    example's (a key only the example names is a key the table lacks)."""
+    keys = [k.name for k in config_keys(step)]
+    steps = registered_steps()
+    if step in steps:
+        keys += [k for k in example_block(steps[step]) if k not in keys]
+    return keys
+
+
+def row_id(step, key):
+    return nodes.make_id(f"config-{step}-{key}")
+
+
+def column_id(name):
+    return nodes.make_id(f"column-{name}")
+
+
+# ------------------------------------------------------------------------ directives
+
+def _table(header, rows, widths, ids=None, title=None):
+    table = nodes.table(classes=["colwidths-given"])
+    if title:
+        table += nodes.title(text=title)
+    group = nodes.tgroup(cols=len(header))
+    table += group
+    for width in widths:
+        group += nodes.colspec(colwidth=width)
+    head = nodes.thead()
+    group += head
+    head += _row(header)
+    body = nodes.tbody()
+    group += body
+    for k, cells in enumerate(rows):
+        row = _row(cells)
+        if ids:
+            row["ids"].append(ids[k])
+        body += row
+    return table
+
+
+def _row(cells):
+    row = nodes.row()
+    for cell in cells:
+        entry = nodes.entry()
+        para = nodes.paragraph()
+        if isinstance(cell, nodes.Node):
+            para += cell
+        else:
+            para += nodes.Text(str(cell))
+        entry += para
+        row += entry
+    return row
+
+
+def _literal(text):
+    return nodes.literal(text=text) if text else nodes.Text("")
+
+
+try:
+    from sphinx.util.docutils import SphinxDirective
+except ImportError:     # only the checking functions are used without Sphinx
+    SphinxDirective = object
+
+
+class StepConfig(SphinxDirective):
+    """``.. step-config:: <step>``: the step's config keys, one table per dataclass."""
+
+    required_arguments = 1
+    has_content = False
+
+    def run(self):
+        step = self.arguments[0]
+        if step not in registered_steps():
+            raise self.error(f"step-config: {step!r} is not a registered step")
+        container = nodes.container(classes=["step-config"])
+        container["ids"].append(nodes.make_id(f"step-config-{step}"))
+        keys = config_keys(step)
+        for owner in dict.fromkeys(k.owner for k in keys):
+            mine = [k for k in keys if k.owner == owner]
+            rows = [(_literal(k.name), _literal(k.default), k.unit, k.meaning) for k in mine]
+            container += _table(("key", "default", "unit", "meaning"), rows, (22, 16, 10, 52),
+                                ids=[row_id(step, k.name) for k in mine],
+                                title=f"{owner.rsplit('.', 1)[-1]} ({owner.rsplit('.', 1)[0]})")
+        for cls in config_classes(step):
+            self.env.note_dependency(inspect.getsourcefile(cls))
+        return [container]
+
+
+class CandidateColumns(SphinxDirective):
+    """``.. candidate-columns::``: every saved candidate column of the schema."""
+
+    has_content = False
+    option_spec = {"step": directives.unchanged}
+
+    def run(self):
+        from so_transients.common import candidates
+
+        cols = [c for c in candidates.columns(saved=True)
+                if self.options.get("step") in (None, c.step)]
+        rows = [(_literal(c.name), _literal(c.step), c.unit or "", c.description) for c in cols]
+        self.env.note_dependency(inspect.getsourcefile(candidates))
+        return [_table(("column", "step", "unit", "meaning"), rows, (18, 22, 10, 50),
+                       ids=[column_id(c.name) for c in cols])]
+
+
+# ------------------------------------------------------------------------ the docs check
+
+class _Ids(HTMLParser):
+    def __init__(self):
+        super().__init__()
+        self.ids = set()
+
+    def handle_starttag(self, tag, attrs):
+        for key, value in attrs:
+            if key == "id" and value:
+                self.ids.add(value)
+
+
+def html_ids(html_dir) -> set:
+    """Every ``id`` attribute in the ``.html`` files under ``html_dir``."""
+    parser = _Ids()
+    for path in sorted(Path(html_dir).rglob("*.html")):
+        parser.feed(path.read_text(encoding="utf-8"))
+    return parser.ids
+
+
+def missing_from_docs(html_dir) -> list:
+    """``(step, key)`` pairs the built HTML under ``html_dir`` lacks: ``(step, None)`` when a
+    registered ``transient_*`` step has no ``autoclass`` entry (id: the process class's dotted
+    path), ``(step, key)`` for each key of :func:`documented_keys` without a row of a
+    ``step-config`` table. Empty when the pages are complete."""
+    ids = html_ids(html_dir)
+    missing = []
+    for step, cls in registered_steps().items():
+        if f"{cls.__module__}.{cls.__qualname__}" not in ids:
+            missing.append((step, None))
+        missing += [(step, key) for key in documented_keys(step) if row_id(step, key) not in ids]
+    return missing
+
+
+def missing_columns(html_dir) -> list:
+    """Names of saved candidate columns without a row of a ``candidate-columns`` table."""
+    from so_transients.common import candidates
+
+    ids = html_ids(html_dir)
+    return [c.name for c in candidates.columns(saved=True) if column_id(c.name) not in ids]
+
+
+def setup(app):
+    app.add_directive("step-config", StepConfig)
+    app.add_directive("candidate-columns", CandidateColumns)
+    return {"version": "1", "parallel_read_safe": True, "parallel_write_safe": True}

@@ -1,6 +1,4 @@
-"""The candidate schema is the one declaration the steps, tables and README share."""
-import re
-from pathlib import Path
+"""The candidate schema is the one declaration the steps, tables and documentation share."""
 
 import numpy as np
 import pytest
@@ -9,15 +7,6 @@ from so_transients.common import candidates
 from so_transients.common.step_config import ConfigError, from_yaml
 from so_transients.detect.find import FindConfig
 from so_transients.detect.fit import FitConfig
-
-README = Path(__file__).resolve().parents[2] / "README.md"
-
-
-def test_the_readme_lists_the_schema_as_generated():
-    text = README.read_text()
-    block = re.search(r"<!-- schema: .*?-->\n(.*?)\n<!-- end schema -->", text, re.S)
-    assert block is not None and block.group(1) == candidates.markdown()
-
 
 def test_tables_carry_units_descriptions_and_unclipped_strings():
     rows = candidates.empty()

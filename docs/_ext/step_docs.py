@@ -3,10 +3,11 @@
 Directives
 ----------
 ``.. step-config:: transient_find``
-    One table per config dataclass of the step: every key (YAML name), its default, unit and
-    meaning. Keys and defaults come from ``dataclasses.fields``; the meaning is the trailing
-    ``# comment`` of the field's source line (with its continuation lines), or else the comment
-    of the key in the step's docstring example block. Each row carries the HTML id
+    One table per config dataclass of the step (the step's entry of
+    ``so_transients.preprocess.step_settings.STEP_CONFIGS``): every key (YAML name), its
+    default, unit and meaning. Keys and defaults come from ``dataclasses.fields``; the meaning
+    is the trailing ``# comment`` of the field's source line (with its continuation lines), or
+    else the comment of the key in the step's docstring example block. Each row carries the HTML id
     ``config-<step>-<key>`` (underscores as hyphens), which :func:`missing_from_docs` looks for.
 ``.. candidate-columns::``
     Every candidate column of :data:`so_transients.common.candidates.SCHEMA` saved to the
@@ -24,7 +25,6 @@ from __future__ import annotations
 
 import ast
 import dataclasses
-import importlib
 import inspect
 import io
 import re
@@ -37,18 +37,10 @@ from pathlib import Path
 from docutils import nodes
 from docutils.parsers.rst import directives
 
-STEP_PREFIX = "transient_"
+from so_transients.preprocess import step_settings
+from so_transients.preprocess.step_settings import STEP_CONFIGS
 
-#: Config dataclasses of each step, in the order their keys are documented. A registered step
-#: missing here is looked up from the ``from_yaml(<Class>, ...)`` calls in its class's source.
-STEP_CONFIGS = {
-    "transient_filter": ("so_transients.detect.matched_filter.FilterConfig",),
-    "transient_find": ("so_transients.detect.find.FindConfig",
-                       "so_transients.coherent.config.CoherentConfig"),
-    "transient_cuts": ("so_transients.detect.cuts.CutsConfig",),
-    "transient_significance": ("so_transients.significance.far.SignificanceConfig",),
-    "transient_fit": ("so_transients.detect.fit.FitConfig",),
-}
+STEP_PREFIX = "transient_"
 
 #: Units the key's name and comment do not give (a key ending in ``_arcmin``, ``_deg``,
 #: ``_hz``, ``_s``, ``_arcsec``, ``_mjy`` or ``_arcmin_per_min`` has that unit, and a comment
@@ -59,65 +51,12 @@ UNITS = {
     "transient_find": {"snr_threshold": "S/N", "coherent_threshold": "Z",
                        "row_step": "beam sigma", "hit_reach": "beam sigma",
                        "stack_seed": "Z", "turnaround_buffer": "s"},
-    "transient_cuts": {},
+    "transient_cuts": {"sidelobe_window": "s"},
     "transient_significance": {"slide_gate": "Z", "row_step": "beam sigma",
                                "background_floor": "Z", "slide_floor": "Z",
                                "peak_window": "beam-crossing times", "max_far": "1 / h",
-                               "tail_from": "Z"},
+                               "tail_from": "Z", "sidelobe_window": "s"},
     "transient_fit": {"window": "s", "cross_scan_sigma": "beam sigma", "min_snr": "S/N"},
-}
-
-#: Meanings for keys whose source comment is missing or does not read on its own (it
-#: continues the previous field's); these take precedence.
-MEANINGS = {
-    "transient_filter": {
-        "highpass": "high-pass frequency of the 4th-order Butterworth (the atmospheric knee); "
-                    "\"fit\": a knee fitted per detector",
-        "edge_buffer": "seconds at each end of the TOD where nothing is detected",
-        "mask_buffer": "seconds around masked or non-finite samples where nothing is detected",
-        "bright_bias": "detectors whose own source may bias their PSD by more than this "
-                       "fraction are filtered again with it masked (null: never)",
-        "source_mask_snr": "... masking the samples above this S/N",
-    },
-    "transient_find": {
-        "min_cluster_samples": "fewest samples of a cluster (the paper's \"more than 10\")",
-        "snr_threshold": "paper mode: samples with matched-filter S/N at least this are "
-                         "clustered",
-        "speed_tolerance": "samples scanning further than this fraction off the nominal "
-                           "scan speed are not searched",
-        "turnaround_buffer": "seconds left out around those samples (turnarounds)",
-        "min_dets": "fewest detectors of a candidate (paper mode: of a cluster; coherent "
-                    "mode: live detectors a band needs)",
-        "chi2_bins": "coherent veto: chi-squared test over this many detector groups "
-                     "(0: no test)",
-        "chi2_tail": "chi-squared test: the share of noise maxima it fails",
-        "chi2_mismatch": "chi-squared test: model error allowed, as a share of Z",
-        "max_single_share": "coherent veto: a maximum one detector makes more than this "
-                            "share of is removed",
-        "max_instant_share": "coherent veto: a maximum the detectors crossed at one instant "
-                             "make more than this share of is removed (a cosmic ray)",
-        "stack_max_share": "sweep stacking: no crossing may make more than this share of a "
-                           "stack's sum",
-    },
-    "transient_cuts": {
-        "min_aspect_ratio": "detectors must form a line along the scan: focal-plane extent "
-                            "along / across the scan at least this",
-        "sidelobe_window": "seconds around the candidate's peaks searched for a signal of "
-                           "opposite sign",
-        "max_opposite_ratio": "cut when that signal is this many times stronger (a filter "
-                              "sidelobe of a strong negative signal)",
-        "pol_fraction": "polarization flag (not a cut) when at least this fraction of the "
-                        "detectors share one orientation",
-    },
-    "transient_significance": {
-        "seed": "seed of the time slides' random offsets and groups",
-        "sidelobe_window": "seconds: sign-inverted maxima this close to a data maximum ...",
-        "max_opposite_ratio": "... this many times higher are its filter sidelobe, left out "
-                              "of the background",
-    },
-    "transient_fit": {
-        "seed": "seed of the random null positions",
-    },
 }
 
 _SUFFIX_UNITS = (("_arcmin_per_min", "arcmin / min"), ("_arcmin", "arcmin"),
@@ -150,26 +89,22 @@ def registered_steps() -> dict:
             if name.startswith(STEP_PREFIX)}
 
 
-def _resolve(dotted):
-    module, _, name = dotted.rpartition(".")
-    return getattr(importlib.import_module(module), name)
-
-
 def config_classes(step) -> list:
-    """The config dataclasses of ``step`` (:data:`STEP_CONFIGS`, else the ``from_yaml``
-    calls in its process class)."""
-    if step in STEP_CONFIGS:
-        return [_resolve(d) for d in STEP_CONFIGS[step]]
-    cls = registered_steps()[step]
-    names = re.findall(r"from_yaml\(\s*(\w+)", inspect.getsource(cls))
-    scope = vars(inspect.getmodule(cls))
-    return [scope[n] for n in dict.fromkeys(names) if n in scope
-            and dataclasses.is_dataclass(scope[n])]
+    """The config dataclasses of ``step``, in the order their keys are documented:
+    ``so_transients.preprocess.step_settings.STEP_CONFIGS[step]``. A :class:`LookupError`
+    names a step missing there."""
+    if step not in STEP_CONFIGS:
+        raise LookupError(f"step {step!r} has no entry in so_transients.preprocess.step_settings."
+                          f"STEP_CONFIGS: add its config dataclasses there")
+    return list(STEP_CONFIGS[step])
 
 
 def _field_comments(cls) -> dict:
     """``{field: (comment, continues_previous)}`` from the class source: the trailing comment
-    of each field's line(s) plus the comment-only lines that continue it."""
+    of each field's line(s) plus the comment-only lines that continue it (before the next
+    field, ``#`` followed by at least two spaces, the text aligned under the comment's).
+    ``continues_previous``: the trailing comment itself opens with two spaces, carrying on
+    the previous field's."""
     source = textwrap.dedent(inspect.getsource(cls))
     comments = {}
     for tok in tokenize.generate_tokens(io.StringIO(source).readline):
@@ -292,9 +227,7 @@ def config_keys(step) -> list:
             own, continues = comments.get(f.name, ("", False))
             doc = example.get(f.name, "")
             unit = _unit(step, f.name, own, doc)
-            if f.name in MEANINGS.get(step, {}):
-                meaning = MEANINGS[step][f.name]
-            elif own and not continues:
+            if own and not continues:
                 meaning = _clean(own, unit)
             else:
                 meaning = _clean(doc or own, unit)
@@ -380,17 +313,20 @@ class StepConfig(SphinxDirective):
         step = self.arguments[0]
         if step not in registered_steps():
             raise self.error(f"step-config: {step!r} is not a registered step")
+        try:
+            keys = config_keys(step)
+        except LookupError as err:
+            raise self.error(f"step-config: {err}") from None
         container = nodes.container(classes=["step-config"])
         container["ids"].append(nodes.make_id(f"step-config-{step}"))
-        keys = config_keys(step)
         for owner in dict.fromkeys(k.owner for k in keys):
             mine = [k for k in keys if k.owner == owner]
             rows = [(_literal(k.name), _literal(k.default), k.unit, k.meaning) for k in mine]
             container += _table(("key", "default", "unit", "meaning"), rows, (22, 16, 10, 52),
                                 ids=[row_id(step, k.name) for k in mine],
                                 title=f"{owner.rsplit('.', 1)[-1]} ({owner.rsplit('.', 1)[0]})")
-        for cls in config_classes(step):
-            self.env.note_dependency(inspect.getsourcefile(cls))
+        for source in (step_settings, *config_classes(step)):
+            self.env.note_dependency(inspect.getsourcefile(source))
         return [container]
 
 

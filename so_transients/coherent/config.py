@@ -18,16 +18,22 @@ from so_transients.detect.find import FindConfig
 @dataclass
 class CoherentConfig:
     coherent_threshold: float = 4.5   # coherent mode: Z of a maximum, in measured spreads
-    row_step: float = 0.8             # ... beam sigmas between rows of positions
-    max_single_share: float = 0.5     # ... veto: one detector makes more of the sum
-    max_instant_share: float = 0.5    # ... veto: detectors crossed at one instant make more
-    chi2_bins: int = 6                # ... veto: chi-squared test over this many detector
-    chi2_tail: float = 1e-3           #     groups, failing this share of noise maxima
-    chi2_mismatch: float = 0.15       #     and allowing this model error (share of Z)
-    hit_reach: float = 2.0            # ... hits: detectors within this many beam sigmas
-    stack_window: float | None = None  # ... s: crossings stacked (None: no sweep stacking)
-    stack_seed: float = 3.0           # ... stacks start from single-crossing maxima this high
-    stack_max_share: float = 0.7      # ... and one crossing makes at most this of their sum
+    row_step: float = 0.8             # coherent mode: beam sigmas between rows of positions
+    max_single_share: float = 0.5     # coherent veto: a maximum one detector makes more than this share of
+    #                                   is removed
+    max_instant_share: float = 0.5    # coherent veto: a maximum the detectors crossed at one instant make
+    #                                   more than this share of is removed (a cosmic ray)
+    chi2_bins: int = 6                # coherent veto: chi-squared test over this many detector groups
+    #                                   (0: no test)
+    chi2_tail: float = 1e-3           # chi-squared test: the share of noise maxima it fails
+    chi2_mismatch: float = 0.15       # chi-squared test: model error allowed, as a share of Z
+    hit_reach: float = 2.0            # coherent mode: a candidate's hits are the detectors within this many
+    #                                   beam sigmas
+    stack_window: float | None = None  # s; sweep stacking: crossings within this window are stacked
+    #                                    (None: no sweep stacking)
+    stack_seed: float = 3.0           # sweep stacking: stacks start from single-crossing maxima this high
+    stack_max_share: float = 0.7      # sweep stacking: no crossing may make more than this share of a
+    #                                   stack's sum
 
     def __post_init__(self):
         positive("transient_find", coherent_threshold=self.coherent_threshold,

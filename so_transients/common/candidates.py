@@ -241,7 +241,9 @@ def table(rows: dict, first=()) -> Table:
 
 
 def markdown() -> str:
-    """The schema as a Markdown table (the README's copy is checked against it)."""
+    """The schema as a Markdown table (``so-transients schema``); the documentation's table is
+    generated from the same schema by the ``candidate-columns`` directive of
+    ``docs/_ext/step_docs.py``."""
     lines = ["| column | step | unit | meaning |", "| --- | --- | --- | --- |"]
     for col in columns(saved=True):
         lines.append(f"| `{col.name}` | `{col.step}` | {col.unit or ''} | {col.description} |")

@@ -36,14 +36,18 @@ SCAN_FIELD = "transient_scan"
 
 @dataclass
 class FindConfig:
-    snr_threshold: float = 3.0
+    snr_threshold: float = 3.0        # paper mode: samples with matched-filter S/N at least this are
+    #                                   clustered
     eps_arcmin: float | None = None   # DBSCAN scale; None: sigma_FWHM of the band
     dbscan_min_samples: int = 5       # DBSCAN core-point neighbourhood (scikit-learn default)
-    min_cluster_samples: int = 11     # "more than 10 samples"
-    min_dets: int = 5                 # clusters on fewer detectors cannot pass the cuts
-    max_candidates: int = 2000        # per group; the rest are dropped with a warning
-    speed_tolerance: float = 0.1      # samples scanning further off the nominal speed ...
-    turnaround_buffer: float = 0.0    # ... and this many s around them are not searched
+    min_cluster_samples: int = 11     # fewest samples of a cluster (the paper's "more than 10")
+    min_dets: int = 5                 # fewest detectors of a candidate (paper mode: of a cluster; coherent
+    #                                   mode: live detectors a band needs)
+    max_candidates: int = 2000        # most candidates per group; the rest are dropped with a warning
+    speed_tolerance: float = 0.1      # samples scanning further than this fraction off the nominal scan
+    #                                   speed are not searched
+    turnaround_buffer: float = 0.0    # seconds left out around the samples off the nominal scan speed
+    #                                   (turnarounds)
     archive_slots: int = 4            # catalogue cells per detector in the archive
     mode: str = "paper"               # "paper": S/N >= 3 clusters; "coherent": maxima of Z
     #                                   (its settings: so_transients.coherent.config)

@@ -54,9 +54,9 @@ class FitConfig:
     radius_deg: float = 1.0      # samples within this distance of the candidate are fitted
     min_snr: float = 5.0         # keep A0 / sigma_A >= min_snr
     cross_scan_sigma: float = 6.0  # detectors passing within this many beam sigmas are fitted
-    #                               (the 3 sigma position range plus 3 sigma of beam)
+    #                                (the 3 sigma position range plus 3 sigma of beam)
     n_null: int = 200            # random positions used to measure the error scale
-    seed: int = 0                # of the random null positions
+    seed: int = 0                # seed of the random null positions
     error_scale: float | None = None   # fixed error scale (None: measured on the group)
     max_motion_arcmin_per_min: float = 5.0   # detections this far apart per time are linked
     min_motion_arcmin_per_min: float = 0.1   # a linked set moving faster is a moving source

@@ -54,21 +54,26 @@ class FilterConfig:
     """Parameters of :func:`matched_filter` (times in seconds, frequencies in Hz), and of the
     ``transient_filter`` step around it (band field, beam widths, masked flags)."""
 
-    highpass: float | str | None = PAPER_KNEE_HZ   # Hz; None (YAML: "fit"): fit per detector
+    highpass: float | str | None = PAPER_KNEE_HZ   # Hz; high-pass frequency of the 4th-order Butterworth
+    #                                                (the atmospheric knee); "fit": a knee fitted per detector
     order: int = 4                         # Butterworth order
     white_band: tuple = (10.0, 30.0)       # band where the PSD is white, for the noise level
-    bins_per_decade: int = 40              # PSD smoothing
-    edge_buffer: float = 5.0
-    mask_buffer: float = 0.2
+    bins_per_decade: int = 40              # PSD smoothing: bins per decade of frequency
+    edge_buffer: float = 5.0               # seconds at each end of the TOD where nothing is detected
+    mask_buffer: float = 0.2               # seconds around masked or non-finite samples where nothing
+    #                                        is detected
     chunk_dets: int = 16                   # detectors per FFT batch (kept in cache)
-    bright_bias: float | None = 0.02       # refilter rows whose source may bias itself more
-    source_mask_snr: float = 3.0           # ... masking samples above this S/N
+    bright_bias: float | None = 0.02       # detectors whose own source may bias their PSD by more than
+    #                                        this fraction are filtered again with it masked (None: never)
+    source_mask_snr: float = 3.0           # detectors filtered again (bright_bias) have their PSD
+    #                                        re-estimated with the samples above this S/N masked
     workers: int = 1                       # threads, each filtering its own chunks
     knee_bounds: tuple = (0.05, 10.0)      # limits of a fitted knee
     min_noise_ratio: float = 0.01          # detectors quieter than this x the median: dead
-    max_noise_ratio: float = 5.0           # noisier than this x the median: not used
+    max_noise_ratio: float = 5.0           # detectors noisier than this x the median: not used
     bandpass_field: str = "bandpass"       # det_info field holding each detector's band
-    beam_fwhm_arcmin: dict = field(default_factory=dict)   # per band; nominal ones otherwise
+    beam_fwhm_arcmin: dict = field(default_factory=dict)   # beam FWHM per band; nominal ones for the
+    #                                                        bands it does not name
     mask_flags: list = field(default_factory=list)         # aman.flags fields to ignore
 
     def __post_init__(self):

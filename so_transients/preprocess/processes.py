@@ -1,19 +1,22 @@
 """sotodlib preprocess processes for the transient search: thin wrappers around the core.
 
-Four steps, registered with sotodlib's ``Pipeline`` when ``so_transients`` is imported, to be
+Five steps, registered with sotodlib's ``Pipeline`` when ``so_transients`` is imported, to be
 listed after the standard steps of a site preprocess config (see
 ``configs/preprocess_transients.yaml``):
 
-``transient_filter`` -> ``transient_find`` -> ``transient_cuts`` -> ``transient_fit``
+``transient_filter`` -> ``transient_find`` -> ``transient_cuts`` -> ``transient_significance``
+-> ``transient_fit``
 
+``transient_significance`` is optional: without it, ``transient_fit`` follows ``transient_cuts``.
 Each step reads its config into its dataclass (:mod:`so_transients.common.step_config`) when the
-pipeline is built, checks the fields it reads (:mod:`so_transients.preprocess.step_fields`: standard SO
-fields only), calls its core (:mod:`~so_transients.detect.matched_filter`, :mod:`~so_transients.detect.find`,
-:mod:`~so_transients.detect.cuts`, :mod:`~so_transients.detect.fit`) and stores the result. Candidates carry
-the columns of :mod:`so_transients.common.candidates`; they are saved on the detector axis
-(:mod:`so_transients.preprocess.slot_storage`) so that loading a whole observation concatenates every
-group's candidates, and :mod:`so_transients.site.results` turns them into tables. Nothing but
-package registration imports this module.
+pipeline is built, checks the fields it reads (:mod:`so_transients.preprocess.step_fields`: standard
+SO fields only), calls its core (:mod:`~so_transients.detect.matched_filter`,
+:mod:`~so_transients.detect.find`, :mod:`~so_transients.detect.cuts`,
+:mod:`~so_transients.significance.far`, :mod:`~so_transients.detect.fit`) and stores the result.
+Candidates carry the columns of :mod:`so_transients.common.candidates`; they are saved on the
+detector axis (:mod:`so_transients.preprocess.slot_storage`) so that loading a whole observation
+concatenates every group's candidates, and :mod:`so_transients.site.results` turns them into
+tables. Nothing but package registration imports this module.
 """
 from __future__ import annotations
 

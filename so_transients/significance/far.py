@@ -71,12 +71,18 @@ class SignificanceConfig:
     slide_floor: float = 4.5         # slides' maxima counted from this Z (below it, far
     #                                  rests on the sign-inverted data, which resolves it)
     peak_window: float = 2.0         # beam-crossing times searched around a candidate
-    max_single_share: float = 0.5    # background maxima one detector makes are left out
-    max_far: float | None = None     # per wafer-band-hour; None: far is reported, not cut
-    seed: int = 0
+    max_single_share: float = 0.5    # background maxima one detector makes more than this share of are
+    #                                  left out
+    max_far: float | None = None     # candidates with a false-alarm rate (per wafer-band-hour) above this
+    #                                  are not detected; None: far is reported, not cut
+    seed: int = 0                    # seed of the time slides' random offsets and groups
     tail_from: float | None = 3.5    # inverted data's maxima modelled from this Z; None: off
-    sidelobe_window: float = 1.0     # s: inverted maxima this close to a data maximum ...
-    max_opposite_ratio: float = 2.0  # ... this many times higher are its filter sidelobe
+    sidelobe_window: float = 1.0     # seconds: sign-inverted maxima this close to a data maximum and
+    #                                  max_opposite_ratio times higher are its filter sidelobe, left out
+    #                                  of the background
+    max_opposite_ratio: float = 2.0  # sign-inverted maxima within sidelobe_window of a data maximum and
+    #                                  this many times higher are its filter sidelobe, left out of the
+    #                                  background
 
     def __post_init__(self):
         self.slide_groups = int(self.slide_groups)

@@ -193,6 +193,10 @@ class DetectorYieldConfig:
     dead_value: float = 0.0         # mJy, with dead_mode: constant
     noisy_fraction: float = 0.0     # of the detectors of each wafer and band (never dead ones)
     noisy_factor: float = 10.0      # their noise (white and 1/f) over their normal level
+    dead_noise: float = 0.0         # readout noise a dead detector still records, over the band's
+    #                                 white-noise level (0: none); with dead_mode zeros or constant
+    lost_detectors: int = 0         # detectors of each wafer and band that record only NaN (a lost
+    #                                 readout channel), drawn independently of dead and noisy ones
 
     def __post_init__(self):
         _check_fraction("detector_yield.dead_fraction", self.dead_fraction)
@@ -202,6 +206,8 @@ class DetectorYieldConfig:
         _check_choice("detector_yield.dead_mode", self.dead_mode, ("zeros", "nan", "constant"))
         if self.noisy_factor <= 0:
             raise ValueError("detector_yield.noisy_factor must be > 0")
+        if self.dead_noise < 0 or self.lost_detectors < 0:
+            raise ValueError("detector_yield.dead_noise and lost_detectors must be >= 0")
 
 
 @dataclass
@@ -249,14 +255,33 @@ class FocalPlaneErrorConfig:
 @dataclass
 class JumpConfig:
     rate_per_hour: float = 0.0      # readout jumps per detector per hour
+    fraction: float = 0.0           # of each wafer-band's detectors (dead ones included) with one
+    #                                 more jump each, at a random time
     height: Any = (5.0, 50.0)       # size: a value or [low, high] log-uniform; random sign
     units: str = "white"            # white: the detector's white-noise rms per sample; mjy
 
     def __post_init__(self):
         self.height = _check_range("jumps.height", self.height)
         _check_choice("jumps.units", self.units, ("white", "mjy"))
+        _check_fraction("jumps.fraction", self.fraction)
         if self.rate_per_hour < 0:
             raise ValueError("jumps.rate_per_hour must be >= 0")
+
+    @property
+    def enabled(self) -> bool:
+        return self.rate_per_hour > 0 or self.fraction > 0
+
+
+@dataclass
+class GapConfig:
+    rate_per_hour: float = 0.0      # NaN stretches per wafer and band per hour, each on one
+    #                                 detector drawn at random (dead ones included)
+    duration: Any = (0.5, 5.0)      # s: a value or [low, high] log-uniform
+
+    def __post_init__(self):
+        self.duration = _check_range("gaps.duration", self.duration)
+        if self.rate_per_hour < 0:
+            raise ValueError("gaps.rate_per_hour must be >= 0")
 
 
 @dataclass
@@ -270,7 +295,7 @@ SECTIONS = {
     "flares": FlareConfig, "point_sources": PointSourceConfig, "glitches": GlitchConfig,
     "detector_yield": DetectorYieldConfig, "calibration": CalibrationConfig,
     "time_constants": TimeConstantConfig, "focal_plane_errors": FocalPlaneErrorConfig,
-    "jumps": JumpConfig, "moving_sources": MovingSourceConfig,
+    "jumps": JumpConfig, "gaps": GapConfig, "moving_sources": MovingSourceConfig,
 }
 
 
@@ -292,6 +317,7 @@ class SimConfig:
     time_constants: TimeConstantConfig = field(default_factory=TimeConstantConfig)
     focal_plane_errors: FocalPlaneErrorConfig = field(default_factory=FocalPlaneErrorConfig)
     jumps: JumpConfig = field(default_factory=JumpConfig)
+    gaps: GapConfig = field(default_factory=GapConfig)
     moving_sources: MovingSourceConfig = field(default_factory=MovingSourceConfig)
 
     @classmethod

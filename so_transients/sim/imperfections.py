@@ -3,8 +3,10 @@
 Per-detector properties are drawn once per tube (:func:`draw_flaws`) and then hold in every
 observation, as for a real array:
 
-* yield: a fraction of each wafer-band's detectors is dead (records zeros, NaN or a constant) and
-  another fraction is noisy (noise a factor above the rest);
+* yield: a fraction of each wafer-band's detectors is dead (records zeros, NaN or a constant,
+  with or without a small readout noise, and still the readout's jumps and the cosmic rays)
+  and another fraction is noisy (noise a factor above the rest); a few channels, drawn
+  independently, are lost (NaN throughout);
 * noise: each detector's white-noise level scatters (log-normal) and it can have its own 1/f
   noise with its own knee, on top of the common atmosphere;
 * calibration: the detector's response to the sky differs from what the metadata say;
@@ -26,14 +28,14 @@ from scipy import fft
 
 from so_transients.common.angles import ARCSEC
 
-OK, DEAD, NOISY = "ok", "dead", "noisy"
+OK, DEAD, NOISY, LOST = "ok", "dead", "noisy", "lost"
 
 
 @dataclass
 class DetectorFlaws:
     """Imperfections of a set of detectors (arrays in the order of their ``readout_id``)."""
 
-    status: np.ndarray          # OK, DEAD or NOISY
+    status: np.ndarray          # OK, DEAD, NOISY or LOST
     noise_factor: np.ndarray    # white (and 1/f) noise level over the band's nominal level
     fknee: np.ndarray           # Hz, knee of the detector's own 1/f noise; 0: none
     gain: np.ndarray            # true sky response over the metadata's (1: perfect calibration)
@@ -85,6 +87,9 @@ def _gains(cfg, n, rng):
 def _group_flaws(config, band, n, rng_of) -> DetectorFlaws:
     """Flaws of the ``n`` detectors of one wafer-band; ``rng_of(component)`` gives its streams."""
     status = _yield_status(config.detector_yield, n, rng_of("yield"))
+    lost = min(config.detector_yield.lost_detectors, n)
+    if lost:
+        status[rng_of("lost").choice(n, lost, replace=False)] = LOST
     factor = np.ones(n)
     if config.noise.white_scatter > 0:
         factor = np.exp(rng_of("white_scatter").standard_normal(n) * config.noise.white_scatter)
@@ -131,7 +136,8 @@ def flaws_table(dets, flaws: DetectorFlaws) -> Table:
                    "xi_true": dets["xi"] * u.rad, "eta_true": dets["eta"] * u.rad,
                    "dxi": flaws.dxi / ARCSEC * u.arcsec, "deta": flaws.deta / ARCSEC * u.arcsec})
     table.meta["comments"] = [
-        "status: ok, dead or noisy; noise_factor: white and 1/f noise over the band's level",
+        "status: ok, dead, noisy or lost (NaN throughout); noise_factor: white and 1/f noise "
+        "over the band's level",
         "gain: true sky response over the metadata's; tau: one-pole detector time constant",
         "dxi, deta: metadata focal-plane position minus the true one (xi_true, eta_true)"]
     return table
@@ -173,7 +179,13 @@ def one_over_f(rng, n, dt, fknee, alpha):
     return fft.irfft(spectrum, n)
 
 
-def silence_dead(tod, flaws: DetectorFlaws, cfg):
-    """Overwrite the rows of dead detectors with what they record (``cfg``: detector_yield)."""
+def silence_dead(tod, flaws: DetectorFlaws, cfg, readout_noise=None):
+    """Overwrite the rows of dead detectors with what they record (``cfg``: detector_yield),
+    plus ``readout_noise(row)`` (an array of the row's length) where given, and the rows of
+    lost channels with NaN. The readout's jumps and the cosmic rays are added after this."""
     value = {"zeros": 0.0, "nan": np.nan, "constant": cfg.dead_value}[cfg.dead_mode]
-    tod[flaws.status == DEAD] = value
+    for row in np.flatnonzero(flaws.status == DEAD):
+        tod[row] = value
+        if readout_noise is not None and cfg.dead_mode != "nan":
+            tod[row] += readout_noise(row).astype(tod.dtype)
+    tod[flaws.status == LOST] = np.nan

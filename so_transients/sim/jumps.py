@@ -3,7 +3,9 @@
 Jumps come from the readout (flux-ramp unlocks, 2 pi slips), so they are added after the
 detector's response to the sky and are not filtered by its time constant. Each detector of an
 observation has a Poisson number of them (``jumps.rate_per_hour``), at uniformly random samples,
-with a log-uniform size of random sign, in mJy or in units of the detector's own white noise.
+with a log-uniform size of random sign, in mJy or in units of the detector's own white noise;
+``jumps.fraction`` of the detectors, drawn at random, have one more. Dead detectors jump like
+the others: a jump is the readout's, not the detector's.
 """
 from __future__ import annotations
 
@@ -20,9 +22,14 @@ def draw_jumps(config, obs_id, readout_ids, timestamps, white_rms, rng) -> Table
     One row per jump: ``sample`` is the first sample offset by ``height`` (mJy).
     """
     rows = {name: [] for name in JUMP_COLUMNS}
-    if config.rate_per_hour > 0:
+    if config.enabled:
         mean = config.rate_per_hour * (timestamps[-1] - timestamps[0]) / 3600.0
-        for name, count, rms in zip(readout_ids, rng.poisson(mean, len(readout_ids)), white_rms):
+        counts = rng.poisson(mean, len(readout_ids))
+        if config.fraction > 0:
+            more = rng.choice(len(readout_ids), int(round(config.fraction * len(readout_ids))),
+                              replace=False)
+            counts[more] += 1
+        for name, count, rms in zip(readout_ids, counts, white_rms):
             samples = np.sort(rng.integers(1, len(timestamps), count))
             size = np.exp(rng.uniform(*np.log(config.height), count))
             heights = size * rng.choice([-1.0, 1.0], count) * (rms if config.units == "white"

@@ -35,6 +35,7 @@ from so_transients.sim.imperfections import (
     DetectorFlaws, draw_flaws, flaws_table, metadata_positions, one_over_f, respond_to_sky,
     silence_dead
 )
+from so_transients.sim.gaps import add_gaps, draw_gaps
 from so_transients.sim.jumps import add_jumps, draw_jumps
 from so_transients.sim.moving import (
     MOVING_COLUMNS, draw_moving_sources, moving_crossings, track_table
@@ -48,6 +49,7 @@ from so_transients.sim.sources import (
 DETS_PER_CHUNK = 32
 # component keys of the random streams
 WHITE, ATMOSPHERE, CMB, FLARES, POINT_SOURCES, GLITCHES, FLAWS, ONE_OVER_F, JUMPS = range(1, 10)
+DEAD_NOISE, GAPS = 10, 11
 
 
 def rng_for(seed: int, *keys) -> np.random.Generator:
@@ -68,6 +70,7 @@ class SimulationResult:
     detsets: dict = field(default_factory=dict)   # obs_id -> [detset, ...]
     moving_sources: Table = field(default_factory=Table)
     jumps: Table = field(default_factory=Table)
+    gaps: Table = field(default_factory=Table)      # NaN stretches (sim.gaps)
     detectors: Table = field(default_factory=Table)   # the imperfections of every detector
 
 
@@ -255,7 +258,7 @@ def simulate(config: SimConfig, output=None, overwrite=False, progress=True,
     writer = DatasetWriter(root)
     result = SimulationResult(root / "context.yaml", [], sources.flares, sources.point_sources,
                               Table(), moving_sources=sources.moving)
-    truth = {"glitches": [], "jumps": []}
+    truth = {"glitches": [], "jumps": [], "gaps": []}
     wanted = _wanted_detsets(config, detsets)
     for b, (start, ref) in enumerate(blocks):
         sky = _BlockSky(config, b, ref, all_dets)
@@ -269,8 +272,10 @@ def simulate(config: SimConfig, output=None, overwrite=False, progress=True,
                           sources, progress, workers, wanted[obs_id], truth)
             result.obs_ids.append(obs_id)
     result.glitches = vstack(truth["glitches"]) if truth["glitches"] else Table()
-    if config.jumps.rate_per_hour > 0 and truth["jumps"]:
+    if config.jumps.enabled and truth["jumps"]:
         result.jumps = vstack(truth["jumps"])
+    if config.gaps.rate_per_hour > 0 and truth["gaps"]:
+        result.gaps = vstack(truth["gaps"])
     if any(not f.ideal for f in flaws.values()):
         result.detectors = vstack([flaws_table(all_dets[t], f) for t, f in flaws.items()])
     _write_truth(root, result, (blocks[0][1].timestamps[0], blocks[-1][1].timestamps[-1]))
@@ -284,7 +289,7 @@ def _write_truth(root, result: SimulationResult, span):
     ``span``: first and last ctime of the dataset (for the moving sources' tracks)."""
     result.flares.write(root / "truth/flares.ecsv", overwrite=True)
     result.point_sources.write(root / "truth/point_sources.ecsv", overwrite=True)
-    for name in ("glitches", "jumps", "detectors"):
+    for name in ("glitches", "jumps", "gaps", "detectors"):
         table = getattr(result, name)
         if len(table.colnames):
             table.write(root / f"truth/{name}.ecsv", overwrite=True)
@@ -296,8 +301,8 @@ def _write_truth(root, result: SimulationResult, span):
 
 def _simulate_obs(config, writer, sky, tl: Timeline, tube, obs_id, block, dets,
                   flaws: DetectorFlaws, sources: _Sources, progress, workers, detsets, truth):
-    """Write one observation (``detsets`` of one tube); appends its glitch and jump truth
-    tables to ``truth``."""
+    """Write one observation (``detsets`` of one tube); appends its glitch, jump and gap
+    truth tables to ``truth``."""
     tau = flaws.tau if config.time_constants.tau_ms is not None else None
     writer.add_detector_metadata(obs_id, tube, metadata_positions(dets, flaws), tau=tau)
     pattern = config.scan
@@ -321,15 +326,18 @@ def _simulate_obs(config, writer, sky, tl: Timeline, tube, obs_id, block, dets,
         truth["glitches"].append(glitches)
         for band_name in bands:
             sel = np.flatnonzero(in_wafer & (dets["bandpass"] == band_name))
-            truth["jumps"].append(_simulate_detset(
+            jumps, gaps = _simulate_detset(
                 config, writer, sky, tl, obs_id, f"{wafer}_{band_name}",
                 {k: v[sel] for k, v in dets.items()}, daz[sel], el_det[sel],
-                sources.band(band_name), glitches, flaws.subset(sel), progress, workers))
+                sources.band(band_name), glitches, flaws.subset(sel), progress, workers)
+            truth["jumps"].append(jumps)
+            truth["gaps"].append(gaps)
 
 
 def _simulate_detset(config, writer, sky, tl: Timeline, obs_id, detset, dets, daz, el_det,
                      sources: _Sources, glitches, flaws: DetectorFlaws, progress, workers=1):
-    """Write the TOD of one detset, chunk by chunk of detectors; returns its jumps' truth."""
+    """Write the TOD of one detset, chunk by chunk of detectors; returns its jumps' and gaps'
+    truth."""
     band = get_band(dets["bandpass"][0])
     white_rms = float(config.noise.white_mjy[band.name]) * flaws.noise_factor
     center = (dets["xi"].mean(), dets["eta"].mean())
@@ -345,6 +353,9 @@ def _simulate_detset(config, writer, sky, tl: Timeline, obs_id, detset, dets, da
     ndet, nsamp = len(dets["xi"]), len(tl.timestamps)
     jumps = draw_jumps(config.jumps, obs_id, dets["readout_id"], tl.timestamps, white_rms,
                        rng_for(config.seed, JUMPS, obs_id, detset))
+    gaps = draw_gaps(config.gaps, obs_id, dets["readout_id"], tl.timestamps,
+                     rng_for(config.seed, GAPS, obs_id, detset))
+    dead_rms = np.float32(config.detector_yield.dead_noise * config.noise.white_mjy[band.name])
     path = writer.tod_path(obs_id, detset)
     slices = [slice(s, min(s + DETS_PER_CHUNK, ndet)) for s in range(0, ndet, DETS_PER_CHUNK)]
 
@@ -378,10 +389,14 @@ def _simulate_detset(config, writer, sky, tl: Timeline, obs_id, detset, dets, da
         else:                     # the historical order: ideal detectors give identical data
             add_noise(tod, sl)
             add_sky(tod, sl)
-        add_glitches(tod, dets["readout_id"][sl], tl.timestamps, glitches,
-                     config.glitches.time_constant)
-        add_jumps(tod, dets["readout_id"][sl], jumps)
-        silence_dead(tod, flaws.subset(sl), config.detector_yield)
+        names = dets["readout_id"][sl]
+        # a dead detector sees no sky but its readout still records noise, jumps, cosmic rays
+        silence_dead(tod, flaws.subset(sl), config.detector_yield, (lambda row: dead_rms * rng_for(
+            config.seed, DEAD_NOISE, obs_id, names[row]).standard_normal(nsamp)) if dead_rms
+            else None)
+        add_glitches(tod, names, tl.timestamps, glitches, config.glitches.time_constant)
+        add_jumps(tod, names, jumps)
+        add_gaps(tod, names, gaps)
         return tod
 
     bar = tqdm(total=len(slices), desc=f"{obs_id} {detset}", unit="chunk",
@@ -396,4 +411,4 @@ def _simulate_detset(config, writer, sky, tl: Timeline, obs_id, detset, dets, da
                 bar.update()
     bar.close()
     writer.add_detset_file(obs_id, detset, dets["readout_id"], path, nsamp)
-    return jumps
+    return jumps, gaps

@@ -315,3 +315,44 @@ def test_unknown_moving_source_keys_are_refused(tmp_path):
     with pytest.raises(ValueError, match="unknown keys"):
         sim(tmp_path, moving_sources={"list": [{"ra": 10.0, "dec": -5.0, "flux_mjy": 1.0,
                                                 "rate_arcmin_per_min": 1.0, "speed": 3}]})
+
+
+def test_imperfections_meet_on_every_channel(tmp_path):
+    """Each imperfection is drawn on every channel independently, as on a real wafer: a dead
+    detector records zeros plus its readout's noise, jumps and cosmic rays; lost channels are
+    NaN throughout; gaps are NaN stretches; ``jumps.fraction`` of the channels jump once more."""
+    result = sim(tmp_path, duration=20.0, base=SKY_ONLY, glitches={
+        "enabled": True, "rate_per_hour": 3600.0, "n_dets": [400, 400],
+        "amplitude_mjy": [5000.0, 5000.0]},
+        detector_yield={"dead_fraction": 0.2, "dead_noise": 0.05, "lost_detectors": 2},
+        jumps={"fraction": 0.5, "height": 5000.0, "units": "mjy"},
+        gaps={"rate_per_hour": 720.0, "duration": 1.0})
+    ids, data = tod(result, "w16_f090")
+    dets = truth(result, "detectors")
+    status = dict(zip(dets["readout_id"], dets["status"]))
+    row = {name: i for i, name in enumerate(ids)}
+    dead = [row[n] for n, s in status.items() if s == "dead" and n in row]
+    lost = [row[n] for n, s in status.items() if s == "lost" and n in row]
+    assert len(lost) == 2 and np.isnan(data[lost]).all()
+    jumps, glitches, gaps = truth(result, "jumps"), truth(result, "glitches"), truth(result, "gaps")
+    assert len(gaps) > 0           # 720 per hour for 20 s: a Poisson draw of mean 4
+    for gap in gaps:
+        k = row[gap["readout_id"]]
+        assert np.isnan(data[k, gap["sample"]:gap["sample"] + gap["n_samples"]]).all()
+    # half the channels jump once (the rate is 0): dead ones among them
+    assert len(jumps) == len(ids) // 2
+    jumped_dead = [row[n] for n in jumps["readout_id"] if row[n] in dead]
+    assert jumped_dead
+    for k in jumped_dead:
+        j = jumps[jumps["readout_id"] == ids[k]][0]
+        step = np.nanmedian(data[k, j["sample"]:]) - np.nanmedian(data[k, :j["sample"]])
+        # the step over a readout noise of 0.05 x the white noise (~80 mJy): a few mJy off
+        assert abs(step - j["height"]) < 50.0
+    # the cosmic rays hit dead channels too: 400 of the 1720 wafer detectors per event
+    hit = {n for ids_ in glitches["readout_ids"] for n in str(ids_).split(",")}
+    dead_hit = [k for k in dead if ids[k] in hit]
+    assert dead_hit and all(np.nanmax(np.abs(data[k])) > 1000.0 for k in dead_hit)
+    # and a dead channel's readout noise is 0.05 of the band's white noise
+    quiet = [k for k in dead if ids[k] not in hit and ids[k] not in set(jumps["readout_id"])]
+    if quiet:
+        assert np.nanstd(data[quiet]) == pytest.approx(0.05 * WHITE, rel=0.05)

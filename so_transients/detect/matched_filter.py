@@ -25,8 +25,13 @@ Dead detectors get zero S/N and ``dead = True``: those with no finite, non-const
 and those whose white-noise level is below ``min_noise_ratio`` or above ``max_noise_ratio``
 times the median of their group's (detectors of one band): a row of zeros that upstream
 filtering turned into ~1e-17 of numerical noise would otherwise weigh 1e30 times more than a
-real detector in every fit, and a detector ten times noisier than the rest adds mostly noise
-to the clustering. They are left out of the median PSD the kernels are computed from.
+real detector in every fit; a dead channel that still carries its readout's jumps and a little
+of the common modes upstream filters subtracted records a few per cent of a live detector's
+noise, and each would weigh as much as hundreds of live detectors (an optical detector's
+noise scatters by some 25 % between detectors, so 0.3 of the median is 5 sigma below it); and
+a detector ten times noisier than the rest adds mostly noise to the clustering. They are left
+out of the median PSD the kernels are computed from. ``excluded`` says why each is left out
+(:data:`EXCLUDED`) and ``masked_fraction`` how much of each detector's time is not searched.
 
 The PSD is estimated from data that contain any sources. A source therefore weights itself
 down by its share of the power in the frequencies the filter uses: about S/N^2 / n_eff, with
@@ -48,6 +53,7 @@ from so_transients.detect import spectral_ops
 from so_transients.common.angles import ARCMIN
 from so_transients.common.bands import PAPER_KNEE_HZ, nominal_fwhm_arcmin
 from so_transients.common.robust import mad_std
+from so_transients.detect.jumps import remove_jumps
 
 @dataclass
 class FilterConfig:
@@ -69,8 +75,14 @@ class FilterConfig:
     #                                        re-estimated with the samples above this S/N masked
     workers: int = 1                       # threads, each filtering its own chunks
     knee_bounds: tuple = (0.05, 10.0)      # limits of a fitted knee
-    min_noise_ratio: float = 0.01          # detectors quieter than this x the median: dead
+    min_noise_ratio: float = 0.3           # detectors quieter than this x the median: dead
     max_noise_ratio: float = 5.0           # detectors noisier than this x the median: not used
+    max_excluded: float = 0.3              # warn, naming the group, when more than this fraction of
+    #                                        its detectors cannot be used
+    jump_threshold: float | None = 8.0     # readout jumps (steps of a detector's median level, this
+    #                                        many times its spread) are removed before filtering;
+    #                                        None: not looked for (so_transients.detect.jumps)
+    jump_window: float = 2.0               # seconds of median level compared on each side of a jump
     bandpass_field: str = "bandpass"       # det_info field holding each detector's band
     beam_fwhm_arcmin: dict = field(default_factory=dict)   # beam FWHM per band; nominal ones for the
     #                                                        bands it does not name
@@ -86,9 +98,13 @@ class FilterConfig:
                 raise ValueError(f"highpass must be a frequency in Hz or 'fit', got "
                                  f"{self.highpass!r}") from None
         for key in ("order", "bins_per_decade", "chunk_dets", "workers", "min_noise_ratio",
-                    "max_noise_ratio"):
+                    "max_noise_ratio", "max_excluded", "jump_window"):
             if not getattr(self, key) > 0:
                 raise ValueError(f"{key} must be positive, got {getattr(self, key)}")
+        if self.max_excluded > 1 or (self.jump_threshold is not None
+                                     and not self.jump_threshold > 0):
+            raise ValueError(f"max_excluded must be at most 1 and jump_threshold positive or "
+                             f"null, got {self.max_excluded}, {self.jump_threshold}")
         self.white_band = tuple(self.white_band)
         unknown = sorted(set(self.beam_fwhm_arcmin) - set(nominal_fwhm_arcmin()))
         if unknown:
@@ -131,6 +147,11 @@ class FilterResult:
     psd_bins: np.ndarray = field(default=None)     # (ndet, nbins) binned PSD each row used
     psd_edges: np.ndarray = field(default=None)    # rfft indices of the bins' edges
     snr_factor: np.ndarray = field(default=None)   # S/N = filtered signal x snr_factor
+    excluded: np.ndarray = field(default=None)     # why each dead detector is not used
+    #                                                (:data:`EXCLUDED`; 0: used)
+    masked_fraction: np.ndarray = field(default=None)  # of each detector's samples not finite,
+    #                                                    masked, or within mask_buffer of those
+    n_jumps: np.ndarray = field(default=None)      # readout jumps removed from each detector
 
     @property
     def valid(self):
@@ -321,6 +342,8 @@ class _Chunk:
     noise_level: np.ndarray
     dead: np.ndarray
     psd: np.ndarray
+    masked_fraction: np.ndarray
+    n_jumps: np.ndarray
 
 
 def _prepare(sp, signal_rows, mask_rows):
@@ -393,6 +416,9 @@ def _filter_chunk(sp, signal, mask, sigma_t, sl, out_snr):
     """
     cfg = sp.cfg
     x, bad = _prepare(sp, signal[sl], None if mask is None else mask[sl])
+    n_jumps = (remove_jumps(x[:, :sp.nsamp], sp.sample_rate, cfg.jump_window,
+                            threshold=cfg.jump_threshold)
+               if cfg.jump_threshold is not None else np.zeros(len(x), int))
     n_mask = int(round(cfg.mask_buffer * sp.sample_rate))
     bad_rows = ({} if bad is None else
                 {i: _grow(bad[i:i + 1], n_mask)[0] for i in np.flatnonzero(bad.any(axis=1))})
@@ -413,13 +439,24 @@ def _filter_chunk(sp, signal, mask, sigma_t, sl, out_snr):
     return _Chunk(sl, res["fknee"], res["snr_factor"], res["psd"].astype(np.float32),
                   res["sigma_amp"], np.where(dead, np.nan, res["scale"]),
                   np.where(dead, 0.0, np.sqrt(res["white"] / sp.nsamp)), dead,
-                  res["psd"][~dead])
+                  res["psd"][~dead],
+                  np.array([bad_rows[i][:sp.nsamp].mean() if i in bad_rows else 0.0
+                            for i in range(len(dead))]), n_jumps)
+
+
+#: Why a detector is not used, as ``FilterResult.excluded`` (and the archive) codes it
+EXCLUDED = {0: "used", 1: "no finite, non-constant data", 2: "noise below min_noise_ratio",
+            3: "noise above max_noise_ratio"}
+NO_DATA, QUIET, NOISY = 1, 2, 3
+#: The same codes as column names
+EXCLUDED_NAMES = {NO_DATA: "no_data", QUIET: "too_quiet", NOISY: "too_noisy"}
 
 
 def noise_outliers(noise_level, dead, groups, cfg: FilterConfig):
-    """Live detectors whose white noise is below ``cfg.min_noise_ratio`` or above
-    ``cfg.max_noise_ratio`` times the median of the live detectors of their group."""
-    out = np.zeros(len(noise_level), bool)
+    """Live detectors whose white noise is below ``cfg.min_noise_ratio`` (:data:`QUIET`) or
+    above ``cfg.max_noise_ratio`` (:data:`NOISY`) times the median of the live detectors of
+    their group; 0 for the others."""
+    out = np.zeros(len(noise_level), np.int8)
     for g in np.unique(groups):
         live = np.flatnonzero((groups == g) & ~dead)
         if not len(live):
@@ -428,7 +465,8 @@ def noise_outliers(noise_level, dead, groups, cfg: FilterConfig):
         # rows of numerical noise (zeros filtered upstream) must not set the reference
         reference = np.median(level[level > 1e-6 * np.percentile(level, 75)])
         ratio = level / reference
-        out[live] = (ratio < cfg.min_noise_ratio) | (ratio > cfg.max_noise_ratio)
+        out[live] = np.where(ratio < cfg.min_noise_ratio, QUIET,
+                             np.where(ratio > cfg.max_noise_ratio, NOISY, 0))
     return out
 
 
@@ -473,11 +511,15 @@ def matched_filter(signal, sample_rate, sigma_t, cfg: FilterConfig = FilterConfi
                           sigma_amp=gather("sigma_amp"), snr_scale=gather("snr_scale"),
                           dead=gather("dead").astype(bool), nfft=sp.nfft,
                           psd_bins=gather("psd_all"), psd_edges=sp.edges,
-                          snr_factor=gather("snr_factor"))
+                          snr_factor=gather("snr_factor"),
+                          masked_fraction=gather("masked_fraction"),
+                          n_jumps=gather("n_jumps").astype(int))
     groups = np.zeros(ndet, int) if groups is None else np.asarray(groups)
     first_dead = result.dead.copy()
-    outliers = noise_outliers(result.noise_level, first_dead, groups, cfg)
+    reason = noise_outliers(result.noise_level, first_dead, groups, cfg)
+    outliers = reason > 0
     _exclude(result, np.flatnonzero(outliers))
+    result.excluded = np.where(first_dead, NO_DATA, reason).astype(np.int8)
     psds = [c.psd for c in chunks if len(c.psd)]
     if psds:      # the live rows' PSDs, in detector order; outliers left out
         live_rows = np.flatnonzero(~first_dead)

@@ -40,7 +40,9 @@ from so_transients.detect.fit_candidates import fit_group_candidates
 from so_transients.significance.far import SignificanceConfig, significance_by_band
 from so_transients.coherent.vetoes import Vetoes
 from so_transients.coherent.sweep_stack import StackSettings
-from so_transients.detect.matched_filter import FilterConfig, matched_filter, response_kernels
+from so_transients.detect.matched_filter import (
+    EXCLUDED, FilterConfig, matched_filter, response_kernels
+)
 from so_transients.common.step_config import from_yaml
 from so_transients.preprocess.step_fields import GroupName, require
 
@@ -106,18 +108,21 @@ def _report_searchable(scan, where, warn_below=0.5):
     return fraction
 
 
-def _check_live(dead, where, cfg):
-    """Log how many detectors the filter cannot use; raise (the group is then recorded as
-    failed) when it can use none."""
-    n, n_dead = len(dead), int(np.sum(dead))
+def _check_live(excluded, where, cfg):
+    """Log how many detectors the filter cannot use and why (as a warning when more than
+    ``cfg.max_excluded`` of them); raise (the group is then recorded as failed) when it can
+    use none."""
+    n, n_dead = len(excluded), int(np.sum(excluded > 0))
     if n and n_dead == n:
         raise ValueError(f"{where}: no usable detector: all {n} have no finite, non-constant "
                          f"data or a white noise outside {cfg.min_noise_ratio:g}-"
                          f"{cfg.max_noise_ratio:g} x their band's median (NaN samples before "
                          f"a PCA step spread to every detector: cut them first)")
-    level = logging.WARNING if n_dead > 0.3 * n else logging.INFO
-    log.log(level, "%s: %d of %d detectors not used (dead, NaN, constant or noise far from "
-            "the median)", where, n_dead, n)
+    why = ", ".join(f"{int(np.sum(excluded == code))} {text}" for code, text in EXCLUDED.items()
+                    if code and np.any(excluded == code))
+    level = logging.WARNING if n_dead > cfg.max_excluded * n else logging.INFO
+    log.log(level, "%s: %d of %d detectors not used%s", where, n_dead, n,
+            f" ({why})" if why else "")
 
 
 # ----------------------------------------------------------------------------- the steps
@@ -139,7 +144,12 @@ class TransientFilter(_Preprocess):
     ``transient_snr * sigma_amp``; :func:`so_transients.site.results.amplitude` computes it for any
     block of detectors and samples, so the full array never needs to be held. It runs again
     when the archive is loaded, so these are always available. The template width is the
-    beam sigma over the scan speed measured from the boresight. Samples flagged in the
+    beam sigma over the scan speed measured from the boresight. Readout jumps (steps of a
+    detector's median level) are removed from the filter's copy of the data first
+    (:mod:`so_transients.detect.jumps`; ``jump_threshold``), leaving sources untouched.
+    ``excluded`` says why a detector is not used, ``n_jumps`` how many jumps were removed from
+    it and ``masked_fraction`` how much of its time is not searched
+    (:mod:`so_transients.site.losses` reads them back per group). Samples flagged in the
     ``aman.flags`` fields listed in ``mask_flags`` (and non-finite ones) are ignored and can
     never be detected; do not list glitch flags there, since bright transients are flagged
     as glitches.
@@ -205,7 +215,7 @@ class TransientFilter(_Preprocess):
         sigma_t = beam_sigma / speed
         res = matched_filter(aman.signal, fs, sigma_t, self.cfg, mask=self._mask(aman),
                              groups=bands)
-        _check_live(res.dead, where, self.cfg)
+        _check_live(res.excluded, where, self.cfg)
         _replace(aman, "transient_snr", res.snr, [(0, "dets"), (1, "samps")])
         _replace(aman, "transient_filter", self._summary(aman, res, fs, sigma_t, beam_sigma, bands))
         return aman, proc_aman
@@ -215,7 +225,9 @@ class TransientFilter(_Preprocess):
         out = _per_det(aman, dict(noise_level=res.noise_level, fknee=res.fknee,
                                   sigma_amp=res.sigma_amp, snr_scale=res.snr_scale,
                                   dead=res.dead, sigma_t=sigma_t, beam_sigma=beam_sigma,
-                                  fit_inflation=inflation, bandpass=bands))
+                                  fit_inflation=inflation, bandpass=bands,
+                                  excluded=res.excluded, n_jumps=res.n_jumps,
+                                  masked_fraction=res.masked_fraction.astype(np.float32)))
         out.add_axis(core.IndexAxis(LAG_AXIS, len(lags)))
         out.wrap("lag", lags, [(0, LAG_AXIS)])
         out.wrap("response", response, [(0, "dets"), (1, LAG_AXIS)])

@@ -58,6 +58,7 @@ def _site_config(args):
 
 def _catalog(args):
     """Exit status 1 with ``--strict`` when a group expected is not in the archive."""
+    from so_transients.site.losses import group_losses, report
     from so_transients.site.results import (
         archive_status, archive_table, output_format, write_table
     )
@@ -69,6 +70,11 @@ def _catalog(args):
                        overwrite=args.overwrite)
     print(f"{len(table)} {'candidates' if args.all else 'detections'} written to {path}")
     print(status.report())
+    losses = group_losses(args.archive, args.max_lost)
+    print("Detectors per group:")
+    print(report(losses))
+    if args.groups:
+        losses.write(args.groups, overwrite=args.overwrite)
     if not status.complete:
         print(f"so-transients catalog: warning: {len(status.failed)} group(s) failed or missing; "
               "the table holds only the others", file=sys.stderr)
@@ -191,6 +197,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     p.add_argument("--strict", action="store_true",
                    help="exit with status 1 when a group is missing from the archive")
+    p.add_argument("--groups", default=None, metavar="FILE",
+                   help="also write each group's losses (detectors removed and why, samples "
+                        "masked) to this table")
+    p.add_argument("--max-lost", type=float, default=0.3,
+                   help="warn about groups that could not use more than this fraction of their "
+                        "detectors (default 0.3)")
     p.set_defaults(func=_catalog)
 
     p = add("schema", "the candidate columns (name, step, unit, meaning)")

@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed
 # OpenMP threads spin-wait on 2 cores (pyfftw, so3g): let idle threads sleep.
 export OMP_WAIT_POLICY ?= passive
 
-.PHONY: demo test lint docs bench clean install
+.PHONY: demo test test-fast lint docs bench clean install
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
@@ -21,6 +21,10 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest
+
+# The quick subset for development: everything but the end-to-end tests marked `slow`.
+test-fast: $(STAMP)
+	$(PY) -m pytest -m "not slow"
 
 # ruff, configured in pyproject.toml
 lint: $(STAMP)

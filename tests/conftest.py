@@ -54,6 +54,21 @@ def run_imperfect_sim(path, flare, duration, dead_mode="nan", seed=43):
 
 
 @pytest.fixture(scope="session")
+def imperfect_bright_dataset(tmp_path_factory):
+    """``get(dead_mode)``: :func:`run_imperfect_sim` with ``BRIGHT_FLARE`` over 240 s,
+    simulated once per session and dead mode (tests only read it)."""
+    made = {}
+
+    def get(dead_mode):
+        if dead_mode not in made:
+            made[dead_mode] = run_imperfect_sim(tmp_path_factory.mktemp(f"imperfect_{dead_mode}"),
+                                                BRIGHT_FLARE, 240.0, dead_mode)
+        return made[dead_mode]
+
+    return get
+
+
+@pytest.fixture(scope="session")
 def noisy_dataset(tmp_path_factory):
     """Five minutes of one MF wafer (both bands) with every noise component on."""
     return run_sim(tmp_path_factory.mktemp("noisy"), seed=11,

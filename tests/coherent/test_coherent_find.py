@@ -201,14 +201,14 @@ def test_many_detector_glitches_do_not_become_coherent_detections(tmp_path):
 
 
 @pytest.mark.parametrize("dead_mode", ["zeros", "nan"])
-def test_coherent_mode_holds_on_imperfect_detectors(tmp_path, dead_mode):
+def test_coherent_mode_holds_on_imperfect_detectors(imperfect_bright_dataset, dead_mode):
     """16 % dead detectors (zeros or NaN), 2 % ten times noisier and cosmic-ray glitches,
     through the transient steps alone (no standard step cuts the bad detectors first): the
     3 Jy flare is detected, every candidate's Z is finite, and no dead detector is a hit."""
     from so_transients.common import candidates
-    from tests.conftest import BRIGHT_FLARE, load_group, run_imperfect_sim, run_steps
+    from tests.conftest import load_group, run_steps
 
-    sim = run_imperfect_sim(tmp_path, BRIGHT_FLARE, 240.0, dead_mode)
+    sim = imperfect_bright_dataset(dead_mode)
     aman = load_group(sim, band="f090")
     run_steps(aman, [s for s in coherent_pipe()
                      if s["name"] in candidates.STEPS or s["name"] == "transient_filter"])

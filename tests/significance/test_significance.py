@@ -13,7 +13,7 @@ from so_transients.site.pipeline import (
     TEMPLATE, failed_groups, run_site_pipeline, write_site_config
 )
 
-from tests.conftest import BRIGHT_FLARE, load_group, run_imperfect_sim, run_steps
+from tests.conftest import load_group, run_steps
 
 STEP = {"name": "transient_significance", "calc": {"n_slides": 10}, "save": True}
 
@@ -99,12 +99,13 @@ def test_without_the_step_candidates_pass_far(tmp_path):
 
 
 @pytest.mark.parametrize("dead_mode", ["zeros", "nan"])
-def test_imperfect_detectors_keep_a_bright_flare_significant(tmp_path, dead_mode):
+def test_imperfect_detectors_keep_a_bright_flare_significant(imperfect_bright_dataset,
+                                                            dead_mode):
     """16 % dead detectors (all zeros, or all NaN), 2 % ten times noisier, and cosmic-ray
     glitches, through the transient steps alone (none of the standard steps that would cut
     bad detectors first) with significance: the bright flare is detected with a finite Z
     beyond every background maximum, and the Z scale stays finite."""
-    sim = run_imperfect_sim(tmp_path, BRIGHT_FLARE, 240.0, dead_mode)
+    sim = imperfect_bright_dataset(dead_mode)
     pipe = yaml.safe_load(TEMPLATE.read_text())["process_pipe"]
     aman = load_group(sim, band="f090")
     run_steps(aman, with_significance([s for s in pipe if s["name"] in candidates.STEPS

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from so_transients.common.step_config import ConfigError, from_yaml_parts, positive
+from so_transients.common.step_config import ConfigError, from_yaml_parts, positive, share
 from so_transients.coherent.sweep_stack import StackSettings
 from so_transients.coherent.vetoes import Vetoes
 from so_transients.detect.find import FindConfig
@@ -41,6 +41,8 @@ class CoherentConfig:
                  max_instant_share=self.max_instant_share, hit_reach=self.hit_reach,
                  stack_window=self.stack_window, stack_seed=self.stack_seed,
                  stack_max_share=self.stack_max_share)
+        share("transient_find", max_single_share=self.max_single_share,
+              max_instant_share=self.max_instant_share, stack_max_share=self.stack_max_share)
         if self.chi2_bins == 1 or self.chi2_bins < 0 or not 0 < self.chi2_tail < 1 \
                 or self.chi2_mismatch < 0:
             raise ConfigError(f"transient_find: chi2_bins must be 0 (no test) or 2 or more, "

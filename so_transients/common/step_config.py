@@ -9,6 +9,7 @@ type with one line naming the step and the key, before any data are read.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 
 
 class ConfigError(ValueError):
@@ -72,7 +73,9 @@ def from_yaml_parts(classes, cfg, step) -> tuple:
     owner = {f.name: (cls, f) for cls in classes for f in dataclasses.fields(cls) if f.init}
     unknown = sorted(set(cfg) - set(owner))
     if unknown:
-        raise ConfigError(f"{step}: unknown key(s) {', '.join(unknown)}; expected some of "
+        hints = [f"{key} (did you mean {close[0]}?)" if close else key for key, close in
+                 ((key, difflib.get_close_matches(str(key), owner, n=1)) for key in unknown)]
+        raise ConfigError(f"{step}: unknown key(s) {', '.join(hints)}; expected some of "
                           f"{', '.join(sorted(owner))}")
     out = []
     for cls in classes:
@@ -80,6 +83,8 @@ def from_yaml_parts(classes, cfg, step) -> tuple:
                   for k, v in cfg.items() if owner[k][0] is cls}
         try:
             out.append(cls(**values))
+        except ConfigError:
+            raise                                   # names the step already
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"{step}: {exc}") from None
     return tuple(out)
@@ -90,3 +95,11 @@ def positive(step, **values):
     for key, value in values.items():
         if value is not None and not value > 0:
             raise ConfigError(f"{step}: {key} must be positive, got {value}")
+
+
+def share(step, **values):
+    """Raise a ConfigError naming ``step`` and the key unless every value is in (0, 1]: a
+    share or fraction above 1 would switch its test off without saying so."""
+    for key, value in values.items():
+        if value is not None and not 0 < value <= 1:
+            raise ConfigError(f"{step}: {key} is a share and must be in (0, 1], got {value}")

@@ -38,7 +38,7 @@ from so_transients.common import candidates
 from so_transients.common.angles import ARCMIN, sky_separation
 from so_transients.detect.find import FindConfig
 from so_transients.common.robust import mad_std
-from so_transients.common.step_config import positive
+from so_transients.common.step_config import positive, share
 
 CUT_ORDER = ("n_dets", "aspect_ratio", "time_order", "sidelobe", "known_source")
 
@@ -63,6 +63,7 @@ class CutsConfig:
                  time_tolerance=self.time_tolerance, mask_radius_arcmin=self.mask_radius_arcmin,
                  pol_fraction=self.pol_fraction, sidelobe_window=self.sidelobe_window,
                  max_opposite_ratio=self.max_opposite_ratio)
+        share("transient_cuts", pol_fraction=self.pol_fraction)
 
     @property
     def mask_radius(self):

@@ -97,6 +97,9 @@ class FilterConfig:
             except ValueError:
                 raise ValueError(f"highpass must be a frequency in Hz or 'fit', got "
                                  f"{self.highpass!r}") from None
+            if not self.highpass > 0:
+                raise ValueError(f"highpass must be a positive frequency in Hz or 'fit', got "
+                                 f"{self.highpass}")
         for key in ("order", "bins_per_decade", "chunk_dets", "workers", "min_noise_ratio",
                     "max_noise_ratio", "max_excluded", "jump_window"):
             if not getattr(self, key) > 0:

@@ -5,7 +5,11 @@ import pytest
 
 from so_transients.common import candidates
 from so_transients.common.step_config import ConfigError, from_yaml
+from so_transients.coherent.config import CoherentConfig
+from so_transients.detect.cuts import CutsConfig
 from so_transients.detect.find import FindConfig
+from so_transients.detect.matched_filter import FilterConfig
+from so_transients.significance.far import SignificanceConfig
 from so_transients.detect.fit import FitConfig
 
 def test_tables_carry_units_descriptions_and_unclipped_strings():
@@ -29,8 +33,21 @@ def test_by_band_keeps_long_strings_from_every_band():
 @pytest.mark.parametrize("cls, cfg, message", [
     (FindConfig, {"snr_threshold": "abc"}, "transient_find: snr_threshold: expected float"),
     (FindConfig, {"min_dets": -3}, "transient_find: min_dets must be positive"),
-    (FindConfig, {"min_det": 3}, "transient_find: unknown key(s) min_det"),
+    (FindConfig, {"min_det": 3}, "transient_find: unknown key(s) min_det (did you mean min_dets?)"),
     (FitConfig, {"n_null": 2.5}, "transient_fit: n_null: expected int"),
+    # thresholds near 0 cluster most samples (a worker was killed at 22.6 GB at -3)
+    (FindConfig, {"snr_threshold": -3.0}, "transient_find: snr_threshold must be at least 2"),
+    (FindConfig, {"snr_threshold": 0}, "transient_find: snr_threshold must be at least 2"),
+    (FilterConfig, {"highpass": -1.23}, "transient_filter: highpass must be a positive frequency"),
+    (FilterConfig, {"min_noise_ratio": 0}, "transient_filter: min_noise_ratio must be positive"),
+    (FilterConfig, {"max_excluded": 1.5}, "transient_filter: max_excluded must be at most 1"),
+    # shares above 1 switch a test off without saying so
+    (CoherentConfig, {"max_single_share": 1.5},
+     "transient_find: max_single_share is a share and must be in (0, 1]"),
+    (CoherentConfig, {"stack_max_share": 0}, "transient_find: stack_max_share must be positive"),
+    (CutsConfig, {"pol_fraction": 2.0}, "transient_cuts: pol_fraction is a share"),
+    (SignificanceConfig, {"max_single_share": 1.2},
+     "transient_significance: max_single_share is a share"),
 ])
 def test_bad_config_values_are_refused_with_the_step_and_key(cls, cfg, message):
     with pytest.raises(ConfigError) as err:

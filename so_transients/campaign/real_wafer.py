@@ -1,0 +1,125 @@
+"""A real wafer, every imperfection at once: simulate it with flares, run the site pipeline in
+either search mode, and score the detections against the truth (``studies/real_wafer.py``;
+the tests of ``tests/site/test_real_wafer.py``).
+
+The simulation is ``studies/configs/real_wafer.yaml`` (one MF wafer at f090, every
+imperfection drawn independently on every channel) with flares of ``t_r`` = 10 s peaking as
+they cross detectors drawn at random (so that the flux is S_p throughout a crossing). Paper
+mode runs ``configs/preprocess_realistic.yaml``; coherent mode the same standard steps with
+``transient_find`` in coherent mode and ``transient_significance``. Detections are matched to
+the truth within 3 s and 3', wider than any error the search should make, so that what is
+asserted about offsets and times can fail.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import yaml
+from astropy.table import Table
+
+from so_transients.campaign.matching import group_crossings, match
+from so_transients.common.angles import ARCMIN
+from so_transients.common.bands import get_band
+from so_transients.site.pipeline import failed_groups, run_site_pipeline, write_site_config
+from so_transients.site.results import archive_table
+from so_transients.sim.config import SimConfig
+from so_transients.sim.focal_plane import tube_detectors
+from so_transients.sim.simulate import simulate
+
+ROOT = Path(__file__).resolve().parents[2]
+CONFIG = ROOT / "studies" / "configs" / "real_wafer.yaml"
+PAPER = ROOT / "configs" / "preprocess_realistic.yaml"
+BRIGHT, FAINT = 3000.0, 900.0
+MATCH_DT, MATCH_OFFSET = 3.0, 3.0 * ARCMIN
+
+
+def coherent_pipe(paper_pipe, max_far):
+    """The paper-mode pipe with transient_find in coherent mode and transient_significance
+    (100 slides in 4 groups, ``max_far``) before transient_fit."""
+    pipe = [dict(s) for s in paper_pipe]
+    for step in pipe:
+        if step["name"] == "transient_find":
+            step["calc"] = {**step["calc"], "mode": "coherent"}
+    k = [s["name"] for s in pipe].index("transient_fit")
+    pipe.insert(k, {"name": "transient_significance",
+                    "calc": {"n_slides": 100, "slide_groups": 4, "max_far": max_far},
+                    "save": True})
+    return pipe
+
+
+def flare_list(seed, duration, n_bright=10, n_faint=5, t_rise=10.0):
+    """Flares peaking as they cross random w16 f090 detectors, at least 20 s apart."""
+    rng = np.random.default_rng(1000 + seed)
+    dets = tube_detectors("i1")
+    names = [n for n, w, b in zip(dets["det_id"], dets["wafer_slot"], dets["bandpass"])
+             if w == "w16" and b == "f090"]
+    n = n_bright + n_faint
+    slots = np.arange(20.0, duration - 20.0, 20.0)
+    times = np.sort(rng.choice(slots, n, replace=False) + rng.uniform(0, 5, n))
+    fluxes = rng.permutation([BRIGHT] * n_bright + [FAINT] * n_faint)
+    return [{"at_detector": str(d), "at_time": float(t), "t_peak": float(t),
+             "s_peak_mjy": float(s), "t_rise": t_rise}
+            for d, t, s in zip(rng.choice(names, n, replace=False), times, fluxes)]
+
+
+def simulate_seed(root, seed, duration, flares, config=CONFIG):
+    """``config`` (the real wafer by default) simulated for ``duration`` s with ``flares``."""
+    cfg = yaml.safe_load(Path(config).read_text())
+    cfg["observation"]["duration"] = duration
+    cfg.update(seed=seed, output=str(root), flares={"list": flares})
+    return simulate(SimConfig.from_dict(cfg), progress=False)
+
+
+def run_mode(sim, root, mode, max_far):
+    """The site pipeline in ``mode`` on ``sim``; the archive's detections."""
+    config = write_site_config(sim.context.parent, path=root / f"{mode}.yaml", template=PAPER,
+                               results=root / mode)
+    if mode == "coherent":
+        cfg = yaml.safe_load(config.read_text())
+        cfg["process_pipe"] = coherent_pipe(cfg["process_pipe"], max_far)
+        config.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    run_site_pipeline(config, nproc=1)
+    failed = failed_groups(config)
+    if failed:
+        raise RuntimeError(f"{config}: failed groups:\n{failed}")
+    return archive_table(config)
+
+
+def score(sim, found):
+    """Per flare: found, detections at its crossing, flux ratio, offset; unmatched count."""
+    flares = Table.read(sim.context.parent / "truth" / "flares.ecsv")
+    fwhm = {b: get_band(b).fwhm for b in set(flares["band"])}
+    crossings = group_crossings(sim.context, flares, fwhm)
+    matched = match(found, flares, crossings, max_dt=MATCH_DT, max_offset=MATCH_OFFSET)
+    rows = []
+    for fl in flares:
+        mine = matched[matched["source_id"] == fl["source_id"]]
+        n_cross = sum(len(v) for k, v in crossings.items() if k[0] == fl["source_id"])
+        best = mine[np.argmin(mine["offset"])] if len(mine) else None
+        rows.append({"s_peak": float(fl["s_peak"]), "crossings": n_cross, "n_det": len(mine),
+                     "flux_ratio": float(best["flux"] / fl["s_peak"]) if best else np.nan,
+                     "offset_arcmin": float(best["offset"] / ARCMIN) if best else np.nan})
+    return rows, int(np.sum(matched["source_id"] < 0))
+
+
+def summary(rows, unmatched, hours):
+    def of(flux):
+        sel = [r for r in rows if r["s_peak"] == flux and r["crossings"]]
+        found = [r for r in sel if r["n_det"]]
+        return sel, found
+    out = {}
+    for name, flux in (("bright", BRIGHT), ("faint", FAINT)):
+        sel, found = of(flux)
+        out[name] = {"found": len(found), "crossed": len(sel),
+                     "twice": sum(r["n_det"] > r["crossings"] for r in found)}
+    _, bright = of(BRIGHT)
+    ratios = np.array([r["flux_ratio"] for r in bright])
+    offsets = np.array([r["offset_arcmin"] for r in bright])
+    out["bright_flux_ratio_median"] = float(np.median(ratios)) if len(ratios) else np.nan
+    out["bright_flux_ratio_worst"] = float(ratios[np.argmax(np.abs(ratios - 1))]) \
+        if len(ratios) else np.nan
+    out["bright_offset_max_arcmin"] = float(offsets.max()) if len(offsets) else np.nan
+    out["unmatched"] = unmatched
+    out["unmatched_per_hour"] = unmatched / hours
+    return out

@@ -21,6 +21,7 @@ from astropy.table import Table
 from so_transients.campaign.matching import group_crossings, match
 from so_transients.common.angles import ARCMIN
 from so_transients.common.bands import get_band
+from so_transients.common.flare_model import flare_flux
 from so_transients.site.pipeline import failed_groups, run_site_pipeline, write_site_config
 from so_transients.site.results import archive_table
 from so_transients.sim.config import SimConfig
@@ -87,7 +88,8 @@ def run_mode(sim, root, mode, max_far):
 
 
 def score(sim, found):
-    """Per flare: found, detections at its crossing, flux ratio, offset; unmatched count."""
+    """Per flare: found, detections of its crossings, and of the detection where it is
+    brightest, the flux over the flare's at that time and the offset; unmatched count."""
     flares = Table.read(sim.context.parent / "truth" / "flares.ecsv")
     fwhm = {b: get_band(b).fwhm for b in set(flares["band"])}
     crossings = group_crossings(sim.context, flares, fwhm)
@@ -96,10 +98,14 @@ def score(sim, found):
     for fl in flares:
         mine = matched[matched["source_id"] == fl["source_id"]]
         n_cross = sum(len(v) for k, v in crossings.items() if k[0] == fl["source_id"])
-        best = mine[np.argmin(mine["offset"])] if len(mine) else None
+        true = flare_flux(np.asarray(mine["t_peak"], float), fl["t_peak"], fl["s_peak"],
+                          fl["t_rise"], fl["t_decay"], fl["eta_rise"], fl["eta_decay"])
+        best = int(np.argmax(true)) if len(mine) else None
         rows.append({"s_peak": float(fl["s_peak"]), "crossings": n_cross, "n_det": len(mine),
-                     "flux_ratio": float(best["flux"] / fl["s_peak"]) if best else np.nan,
-                     "offset_arcmin": float(best["offset"] / ARCMIN) if best else np.nan})
+                     "flux_ratio": float(mine["flux"][best] / true[best])
+                     if best is not None else np.nan,
+                     "offset_arcmin": float(mine["offset"][best] / ARCMIN)
+                     if best is not None else np.nan})
     return rows, int(np.sum(matched["source_id"] < 0))
 
 

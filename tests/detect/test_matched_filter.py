@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from so_transients.detect.matched_filter import (
-    FilterConfig, filter_kernels, fit_error_inflation, gaussian_template_spectrum, matched_filter
+    FilterConfig, butterworth_highpass, filter_kernels, fit_error_inflation, fit_knee,
+    gaussian_template_spectrum, matched_filter
 )
 
 FS = 220.0
@@ -67,9 +68,42 @@ def test_noise_only_snr_has_unit_variance():
 
 def test_fitted_knee_recovers_the_simulated_one():
     rng = np.random.default_rng(3)
-    tod = red_noise(rng, 20, 300 * 220, fknee=1.23, alpha=2.7)
+    nsamp = 300 * 220
+    tod = red_noise(rng, 20, nsamp, fknee=1.23, alpha=2.7)
     res = matched_filter(tod, FS, SIGMA_T, FilterConfig(highpass=None))
-    assert abs(np.median(res.fknee) / 1.23 - 1) < 0.15
+    # fit_knee is exact on the true spectrum, but not unbiased on a measured one: each binned
+    # PSD value is the mean of c periodogram ordinates, exponentially distributed about the
+    # true PSD, and only bins 30 % above white enter the fit, which near the knee keeps the
+    # upward fluctuations. Its expected output is that of binned PSDs drawn with those
+    # statistics (2000 of them; no FFT, no filter involved): the median of 20 detectors comes
+    # out 1.10 +- 0.02 times the true knee (a bias of the estimator, not of the data). The
+    # measured median is held to four of that spread.
+    truth, draws, fit = periodogram_knee_draws(res, nsamp, 2000, np.random.default_rng(0))
+    assert fit(truth[None, :])[0] == pytest.approx(1.0, abs=1e-3)
+    medians = np.median(fit(draws).reshape(-1, 20), axis=1)
+    assert abs(np.median(res.fknee) / 1.23 - medians.mean()) < 4 * medians.std()
+
+
+def periodogram_knee_draws(res, nsamp, n_draws, rng, fknee=1.23, alpha=2.7):
+    """``(truth, draws, fit)``: the binned PSD (white = 1) of ``white (1 + (fknee/f)^alpha)`` in
+    the bins ``res`` used, ``n_draws`` binned periodograms of it (each bin the mean of its
+    ordinates: Gamma(c, 1/c) times the truth, c = the bin's ordinates times nsamp / nfft, the
+    independent ones among zero-padded ordinates), and ``fit``: fit_knee on such rows, with
+    the white level taken as the filter takes it (10-30 Hz), over ``fknee``."""
+    edges = np.asarray(res.psd_edges)
+    freqs = np.fft.rfftfreq(res.nfft, 1 / FS)[1:]
+    counts = np.diff(edges)
+    per_bin = lambda values: np.add.reduceat(values, edges[:-1] - 1) / counts
+    truth = per_bin(1 + (fknee / freqs) ** alpha)
+    shape = counts * nsamp / res.nfft
+    draws = truth * rng.gamma(shape, 1 / shape, size=(n_draws, len(counts)))
+    in_white = per_bin(((freqs >= 10) & (freqs <= 30)).astype(float)) * counts
+    bin_freqs = np.exp(per_bin(np.log(freqs)))
+
+    def fit(rows):
+        white = rows @ in_white / in_white.sum()
+        return fit_knee(bin_freqs, rows, white, (0.05, 10.0), 10.0, counts) / fknee
+    return truth, draws, fit
 
 
 def test_edges_masked_samples_and_nans_make_no_detections():
@@ -120,26 +154,80 @@ def test_too_short_is_an_error():
         matched_filter(np.zeros((2, 5), np.float32), FS, SIGMA_T)
 
 
+def bright_crossing(amp=20000.0, ndet=10, seconds=60):
+    """White noise with a 20 Jy Gaussian crossing in the middle of ``seconds``, on ``ndet``
+    detectors; returns the TOD and the crossing's sample."""
+    rng = np.random.default_rng(6)
+    nsamp = seconds * 220
+    t = np.arange(nsamp) / FS
+    tod = (WHITE * rng.standard_normal((ndet, nsamp))
+           + amp * np.exp(-0.5 * ((t[None] - seconds / 2) / SIGMA_T) ** 2)).astype(np.float32)
+    return tod, int(round(seconds / 2 * FS))
+
+
+def filter_sums(nfft, fknee=1.23):
+    """Frequencies, one-sided weights, high-pass and template spectrum of a filter of nfft."""
+    f = np.fft.rfftfreq(nfft, 1 / FS)
+    w = np.where((f == 0) | (f == f[-1]), 1.0, 2.0)
+    return f, w, butterworth_highpass(f, fknee, 4), gaussian_template_spectrum(nfft, FS, SIGMA_T)
+
+
 def test_a_very_bright_source_keeps_the_filter_of_its_neighbours():
     """A 20 Jy crossing in 60 s dominates its own detectors' PSD. Its amplitude stays unbiased
     (its power cancels between filter and normalization), but the filter of those detectors
-    would change shape and lose S/N; the second pass, with the source masked, restores it."""
-    rng = np.random.default_rng(6)
-    nsamp, ndet, amp = 60 * 220, 10, 20000.0
-    t = np.arange(nsamp) / FS
-    tod = (WHITE * rng.standard_normal((ndet, nsamp))
-           + amp * np.exp(-0.5 * ((t[None] - 30.0) / SIGMA_T) ** 2)).astype(np.float32)
-    k = int(round(30.0 * FS))
+    changes shape and loses S/N; the second pass, with the source masked, restores it."""
+    amp, ndet = 20000.0, 10
+    tod, k = bright_crossing(amp, ndet)
+    nsamp = tod.shape[1]
     single = matched_filter(tod, FS, SIGMA_T, FilterConfig(bright_bias=None))
     double = matched_filter(tod, FS, SIGMA_T, FilterConfig())
     lags, response, _ = filter_kernels(double.nfft, FS, SIGMA_T, 1.23,
                                        np.ones(double.nfft // 2 + 1))
     expected = response[np.searchsorted(lags, 10 / FS - 1e-9)]     # 10 samples from the peak
     shape = lambda res: np.mean(res.amplitude[:, [k - 10, k + 10]]) / amp
-    # one pass: the bright detectors' filter is distorted (-0.15 here vs 0.002 expected);
-    # the second pass brings it at least three times closer to the white-noise filter
-    assert abs(shape(single) - expected) > 0.1
-    assert abs(shape(double) - expected) < abs(shape(single) - expected) / 3
-    assert np.mean(double.snr[:, k]) > 1.08 * np.mean(single.snr[:, k])
-    assert abs(np.mean(double.amplitude[:, k]) / amp - 1) < 0.02
+    # One pass, derived: the PSD it estimates holds the source's own power, E|FFT|^2 =
+    # N + |X|^2 per rfft frequency (N = nsamp WHITE^2, X = amp T the crossing's spectrum,
+    # 17 times N at low frequencies), so its filter is B T / (N + |X|^2) and the amplitude's
+    # response at lag tau is sum(w B T^2 cos(2 pi f tau) / P) / sum(w B T^2 / P): -0.149 at
+    # 10 samples, where the white-noise filter's is +0.002.
+    f, w, b, tmpl = filter_sums(single.nfft)
+    psd = nsamp * WHITE**2 + (amp * tmpl) ** 2
+    lag = 10 / FS
+    one_pass = (np.sum(w * b * tmpl**2 * np.cos(2 * np.pi * f * lag) / psd)
+                / np.sum(w * b * tmpl**2 / psd))
+    # each shape is the mean of 20 amplitude values (10 detectors, 10 samples either side of
+    # the peak, 20 samples apart: farther than the response's width, so independent):
+    # standard error sigma_amp / amp / sqrt(20), 0.0025 here; four of them
+    noise = lambda res: np.mean(res.sigma_amp) / amp / np.sqrt(2 * ndet)
+    assert abs(shape(single) - one_pass) < 4 * noise(single)
+    assert abs(shape(double) - expected) < 4 * noise(double)
+    # the second pass gains S/N: measured 1.14 here (the analytic gain, optimal over one-pass
+    # filter, is 1.39; the difference is the second pass's S/N normalization, see
+    # test_the_second_pass_keeps_the_snr_normalization). Each mean S/N is known to
+    # 1 / sqrt(10) = 0.3 of ~90-100: a gain of 1.4 % is four standard errors.
+    assert np.mean(double.snr[:, k]) > (1 + 4 / np.sqrt(ndet) / np.mean(single.snr[:, k])) \
+        * np.mean(single.snr[:, k])
+    # the mean peak amplitude of 10 detectors is known to sigma_amp / amp / sqrt(10) (0.3 %)
+    assert abs(np.mean(double.amplitude[:, k]) / amp - 1) < 4 * noise(double) * np.sqrt(2)
     assert np.allclose(double.noise_level, WHITE, rtol=0.05)
+
+
+@pytest.mark.xfail(strict=True, reason="the source-masked PSD of the second pass is 1.3-1.5 "
+                   "times too high below 2 Hz in a 60 s TOD (linear interpolation across the "
+                   "masked samples adds low-frequency power): the S/N of bright detectors has "
+                   "0.83-0.86 of unit noise away from the source and peak S/N 101 for 129")
+def test_the_second_pass_keeps_the_snr_normalization():
+    """After the second pass the bright detectors' S/N has unit noise away from the source
+    (the module's promise: normalized by measurement) and the analytic peak S/N of the
+    white-noise filter, amp / WHITE x sum(w B T^2) / sqrt(nsamp sum(w B^2 T^2)) (129 here)."""
+    amp, ndet = 20000.0, 10
+    tod, k = bright_crossing(amp, ndet)
+    nsamp = tod.shape[1]
+    double = matched_filter(tod, FS, SIGMA_T, FilterConfig())
+    far = np.r_[5 * 220:20 * 220, 40 * 220:55 * 220]
+    # 10 detectors x 6600 samples, correlated over ~5: the std is known to ~0.5 %
+    assert abs(np.std(double.snr[:, far]) - 1) < 0.03
+    f, w, b, tmpl = filter_sums(double.nfft)
+    optimal = amp / WHITE * np.sum(w * b * tmpl**2) / np.sqrt(nsamp * np.sum(w * b**2 * tmpl**2))
+    # mean of 10 detectors' S/N: 1 / sqrt(10) each; 2 % for the PSD's own estimate
+    assert abs(np.mean(double.snr[:, k]) - optimal) < 4 / np.sqrt(ndet) + 0.02 * optimal

@@ -3,6 +3,7 @@ from the real archive, and with a group's data gone."""
 import numpy as np
 import pytest
 from astropy.table import Table
+from scipy.stats import norm
 
 from so_transients.common.angles import ARCMIN
 from so_transients.common.angles import sky_separation
@@ -15,6 +16,14 @@ SLOW = dict(at_detector="w16_f090_p100A", at_time=80.0, t_peak=80.0, s_peak_mjy=
             t_rise=30.0, spectral_index=-1.0)
 FAST = dict(at_detector="w16_f090_p250A", at_time=150.0, t_peak=150.0, s_peak_mjy=3000.0,
             t_rise=1.0)
+#: Largest fraction of a 3 Jy source the shipped pca_filter takes before the matched filter:
+#: a measured figure, not derived (docs/results/events.md, "Known limits": 2-10 % at the
+#: bright crossings of this test; measured again here, 8-10 % at the two best-measured f090
+#: points and 1-8 % at f150). The campaign injects after the filter and does not see it.
+PCA_LOSS = 0.10
+#: The bright light-curve points of both bands (8 here) each within K_POINTS of their own
+#: errors: a 1 % chance of one false failure among 8 Gaussian points (Bonferroni).
+K_POINTS = float(norm.isf(0.01 / (2 * 8)))
 
 
 @pytest.fixture(scope="module")
@@ -77,13 +86,16 @@ def test_light_curve_of_the_slow_flare(events_run):
         assert off.sum() >= 4
         # where the flare is off, the forced fluxes are noise: every one within 5 sigma
         assert np.all(np.abs(points["flux"][off] / points["flux_err"][off]) < 5)
-        # where it is bright, the flux follows the light curve; the shipped pca_filter
-        # removes part of a 3 Jy source before the matched filter (measured here 2-10 %;
-        # the campaign injects after the filter and does not see it), hence 0.8-1.1
+        # where it is bright, the flux follows the light curve, less what the shipped
+        # pca_filter takes of a 3 Jy source before the matched filter: flux = (1 - L) x
+        # expected + noise, with L between 0 and PCA_LOSS (a measured figure, see its
+        # definition). Each point within K_POINTS of its own errors of that band.
         bright = expected > 500
         assert bright.sum() >= 3
-        ratio = points["flux"][bright] / expected[bright]
-        assert np.all((ratio > 0.8) & (ratio < 1.1)), ratio
+        ratio = np.asarray(points["flux"][bright] / expected[bright])
+        sigma = np.asarray(points["flux_err"][bright] / expected[bright])
+        assert np.all(ratio > 1 - PCA_LOSS - K_POINTS * sigma), (ratio, sigma)
+        assert np.all(ratio < 1 + K_POINTS * sigma), (ratio, sigma)
     assert set(mine["frequency"]) == {90, 150}
     assert lc["flux"].unit == "mJy" and lc["ra"].unit == "deg"
 

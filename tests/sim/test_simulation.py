@@ -6,6 +6,7 @@ from astropy.table import Table
 from scipy import signal as sps
 from scipy.optimize import curve_fit
 from scipy.spatial import cKDTree
+from scipy.stats import norm
 from sotodlib import core
 from sotodlib.tod_ops import fft_ops
 
@@ -50,8 +51,14 @@ def test_knee_frequency_from_sotodlib_noise_fit(noisy_dataset):
     f, pxx = fft_ops.calc_psd(aman, nperseg=2**13, merge=False)
     fit = fft_ops.fit_noise_model(aman, f=f, pxx=pxx, wn_est=367 * np.sqrt(2 / 220),
                                   fknee_est=1.0, alpha_est=2.5, f_max=50, merge_fit=False)
-    fknee = fit.fit[:, 1]
-    assert np.all(np.abs(fknee / 1.23 - 1) < 0.25), fknee
+    fknee, err = fit.fit[:, 1], np.sqrt(fit.cov[:, 1, 1])
+    # Each detector's knee against 1.23 Hz in units of sotodlib's own fit error (~9 %: the
+    # square root of its fit covariance's knee term). The 22 detectors see one atmosphere realization,
+    # so their knees move together (measured 1.03-1.16 x 1.23 Hz, spread 3 %, pulls 0.4-1.5):
+    # not independent, but a Bonferroni bound needs no independence: all 22 within
+    # K of their errors fails falsely with < 1 % chance.
+    k = norm.isf(0.01 / (2 * len(fknee)))
+    assert np.all(np.abs(fknee - 1.23) < k * err), (fknee, err)
 
 
 def test_neighbouring_detectors_share_the_atmosphere(noisy_dataset):

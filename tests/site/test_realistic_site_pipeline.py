@@ -8,11 +8,15 @@ import numpy as np
 import pytest
 from sotodlib.preprocess import preprocess_util as pp_util
 
-from so_transients.campaign.matching import compare_with_truth
+from so_transients.common.angles import ARCSEC
 from so_transients.site.results import archive_table, observation_table
 from so_transients.sim.config import load_config
 from so_transients.sim.simulate import simulate
 from so_transients.site.pipeline import failed_groups, run_site_pipeline, write_site_config
+
+from tests.site.test_site_pipeline import (
+    PAPER_POINTING_ARCSEC, crossing_duration, k_pull, sky_pulls, wide_match
+)
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 BRIGHT = 800.0          # mJy: flares at least this bright must be found in both bands
@@ -39,10 +43,15 @@ def test_no_group_failed(realistic_run):
 
 
 def test_bright_flares_are_found_and_little_else(realistic_run):
+    """Matched six times wider than the paper's 0.5 s and 0.5' (so that the limits asserted
+    below are not those of the matching): the bright flares are all found; each detection's
+    time lies within its crossing, its position within K_PULL of its fit errors (all 2 N
+    pulls: measured within 1.6), and each band's median offset within the paper's median
+    (14.6" at f090, 7.0" at f150; measured 2.9" and 3.2" over flares of 0.4-1.8 Jy)."""
     sim, config = realistic_run
     table = archive_table(config, detected_only=False)
-    matched, flares, crossings = compare_with_truth(sim.context.parent,
-                                                    table[np.asarray(table["detected"], bool)])
+    matched, flares, crossings = wide_match(sim.context.parent,
+                                            table[np.asarray(table["detected"], bool)])
     bright = {(int(f["source_id"]), str(f["band"])) for f in flares
               if f["s_peak"] >= BRIGHT and len(crossings[(int(f["source_id"]), sim.obs_ids[0],
                                                           "w16", str(f["band"]))])}
@@ -50,8 +59,15 @@ def test_bright_flares_are_found_and_little_else(realistic_run):
     hits = matched[matched["source_id"] >= 0]
     found = {(int(m["source_id"]), str(m["bandpass"])) for m in hits}
     assert bright <= found
-    assert np.all(hits["dt"] <= 0.5) and np.all(np.degrees(hits["offset"]) * 60 <= 0.5)
     assert np.sum(matched["source_id"] < 0) <= MAX_FALSE
+    for band in ("f090", "f150"):
+        mine = hits[hits["bandpass"] == band]
+        assert len(mine) >= 3
+        assert np.all(mine["dt"] < crossing_duration(sim, "w16", band)), mine["dt"]
+        offset = np.asarray(mine["offset"]) / ARCSEC
+        assert np.median(offset) < PAPER_POINTING_ARCSEC[band], offset
+    pulls = sky_pulls(hits, flares)
+    assert np.all(np.abs(pulls) < k_pull(pulls.size)), pulls
 
 
 def test_the_moving_source_is_flagged_not_reported(realistic_run):

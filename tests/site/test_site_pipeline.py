@@ -6,10 +6,12 @@ import h5py
 import numpy as np
 import pytest
 from astropy.table import Table
+from scipy.stats import norm
 from sotodlib import core
 from sotodlib.preprocess import preprocess_util as pp_util
 
-from so_transients.campaign.matching import compare_with_truth
+from so_transients.campaign.matching import compare_with_truth, match
+from so_transients.common.angles import ARCMIN, ARCSEC
 from so_transients.site.results import archive_entries, archive_table, observation_table
 from so_transients.site.pipeline import failed_groups, run_site_pipeline, write_site_config
 
@@ -40,16 +42,83 @@ def test_no_group_failed(flare_run):
 
 
 def test_every_bright_flare_is_found_at_the_right_time_and_place(flare_run):
+    """Matched six times wider than the paper's 0.5 s and 0.5' (so that the limits asserted
+    below are not those of the matching): every crossed flare is found, nothing else is,
+    each detection's time lies within the crossing and its position within the paper's
+    median f090 offset (14.6": the flares here are 2-40 Jy, 4 to 70 times the paper's
+    t_r = 0.5 s 50 % threshold; measured 0.3-6.3")."""
     sim, config = flare_run
     detections = archive_table(config)
-    matched, flares, crossings = compare_with_truth(sim.context.parent, detections)
+    matched, flares, crossings = wide_match(sim.context.parent, detections)
     crossed = {k[0] for k, v in crossings.items() if len(v)}
     assert crossed == set(flares["source_id"])          # every flare is crossed by the wafer
     found = set(matched["source_id"][matched["source_id"] >= 0])
     assert found == crossed
-    hits = matched[matched["source_id"] >= 0]
-    assert np.all(hits["dt"] <= 0.5) and np.all(np.degrees(hits["offset"]) * 60 <= 0.5)
     assert np.sum(matched["source_id"] < 0) == 0         # no false detection, glitches included
+    hits = matched[matched["source_id"] >= 0]
+    assert np.all(hits["dt"] < crossing_duration(sim, "w16", "f090")), hits["dt"]
+    offset = np.asarray(hits["offset"]) / ARCSEC
+    assert np.all(offset < PAPER_POINTING_ARCSEC["f090"]), offset
+
+
+@pytest.mark.xfail(strict=True, reason="the shipped pca_filter moves the 4 Jy flare (source 4, "
+                   "t_rise 1.8 s) by 6.3\" = 5.3 fit errors along RA (0.3\", 0.3 errors, "
+                   "without the pca_filter); every other position is within 2.8 errors")
+def test_positions_agree_with_their_fit_errors(flare_run):
+    """Each detection's RA and Dec offsets from the truth in units of its fit errors: all
+    2 N of them within K_PULL(2 N) (Bonferroni: a 1 % chance of one false failure for
+    Gaussian errors, whatever their correlation)."""
+    sim, config = flare_run
+    matched, flares, _ = wide_match(sim.context.parent, archive_table(config))
+    pulls = sky_pulls(matched[matched["source_id"] >= 0], flares)
+    assert np.all(np.abs(pulls) < k_pull(pulls.size)), pulls
+
+
+#: Clancy et al. 2025, section 5.2: median offset of the fitted positions per band, arcsec
+#: (over all their detections, most near threshold)
+PAPER_POINTING_ARCSEC = {"f090": 14.6, "f150": 7.0, "f220": 9.4, "f280": 9.1}
+#: The matching window of these tests: 3 s and 3', six times the paper's (0.5 s, 0.5')
+WIDE_DT, WIDE_OFFSET = 3.0, 3 * ARCMIN
+
+
+def wide_match(dataset, detections):
+    """``compare_with_truth`` with the WIDE_DT and WIDE_OFFSET window: (matched, flares,
+    crossings)."""
+    _, flares, crossings = compare_with_truth(dataset, detections)
+    return match(detections, flares, crossings, WIDE_DT, WIDE_OFFSET), flares, crossings
+
+
+def sky_pulls(hits, flares):
+    """(RA x cos Dec, Dec) offsets of matched detections from their flares over their fit
+    errors, flattened."""
+    truth = {(int(f["source_id"]), str(f["band"])): f for f in flares}
+    out = []
+    for row in hits:
+        flare = truth[(int(row["source_id"]), str(row["bandpass"]))]
+        dra = np.angle(np.exp(1j * (row["ra"] - flare["ra"]))) * np.cos(flare["dec"])
+        out += [dra / row["ra_err"], (row["dec"] - flare["dec"]) / row["dec_err"]]
+    return np.array(out)
+
+
+def k_pull(n, family=0.01):
+    """|pull| bound for n Gaussian pulls with a ``family`` chance of one false failure."""
+    return float(norm.isf(family / (2 * n)))
+
+
+def crossing_duration(sim, wafer, band):
+    """The longest a source takes to cross the group's detectors: twice the largest
+    distance of a detector from their centre over the scan's speed on the sky (the median
+    of the boresight's). A detection's peak sample and the moment of a crossing's largest
+    signal both lie within one crossing, so they are never further apart (0.61 s for w16 at
+    the simulator's 1 deg/s)."""
+    ctx = core.Context(str(sim.context))
+    aman = ctx.get_obs(sim.obs_ids[0], dets={"wafer_slot": wafer, "bandpass": band},
+                       no_signal=True)
+    xi, eta = np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta)
+    radius = np.hypot(xi - xi.mean(), eta - eta.mean()).max()
+    t, az = np.asarray(aman.timestamps), np.unwrap(np.asarray(aman.boresight.az))
+    speed = np.median(np.abs(np.gradient(az, t))) * np.cos(np.median(aman.boresight.el))
+    return 2 * radius / speed
 
 
 def test_glitch_step_flags_the_bright_flare_but_does_not_lose_it(flare_run):

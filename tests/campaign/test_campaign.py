@@ -22,6 +22,8 @@ from so_transients.common.angles import ARCMIN, ARCSEC
 from so_transients.common.bands import get_band
 from so_transients.site.results import archive_table
 
+pytestmark = pytest.mark.slow   # end to end: simulates and runs the pipeline
+
 ROOT = Path(__file__).resolve().parents[2]
 QUICK = ROOT / "studies" / "configs" / "campaign_quick.yaml"
 

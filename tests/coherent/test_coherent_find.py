@@ -144,6 +144,7 @@ def coherent_site_run(tmp_path_factory, two_flare_dataset):
     return sim, config
 
 
+@pytest.mark.slow
 def test_coherent_mode_runs_in_the_site_pipeline_into_the_archive(coherent_site_run):
     from so_transients.site.results import archive_table
     from so_transients.site.pipeline import failed_groups
@@ -181,6 +182,7 @@ def test_a_band_with_too_few_live_detectors_gets_a_named_warning(tmp_path, caplo
                and "f090" in r.message for r in caplog.records)
 
 
+@pytest.mark.slow
 def test_many_detector_glitches_do_not_become_coherent_detections(tmp_path):
     """Noise with 50 cosmic-ray glitches, each on 30-60 detectors at one instant, through the
     shipped steps in coherent mode: nothing is detected within a second of a glitch."""
@@ -200,6 +202,7 @@ def test_many_detector_glitches_do_not_become_coherent_detections(tmp_path):
     assert np.all(gap > 1.0), gap
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dead_mode", ["zeros", "nan"])
 def test_coherent_mode_holds_on_imperfect_detectors(imperfect_bright_dataset, dead_mode):
     """16 % dead detectors (zeros or NaN), 2 % ten times noisier and cosmic-ray glitches,

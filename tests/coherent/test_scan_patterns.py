@@ -12,6 +12,8 @@ from tests.conftest import BRIGHT_FLARE, load_group, run_sim, run_steps
 from tests.coherent.test_coherent_find import coherent_pipe
 from tests.significance.test_significance import with_significance
 
+pytestmark = pytest.mark.slow   # end to end: simulates and runs the pipeline
+
 #: BRIGHT_FLARE crossed at its peak 100 s in: mid-sweep in both patterns
 FLARE = {**BRIGHT_FLARE, "at_time": 100.0, "t_peak": 100.0}
 

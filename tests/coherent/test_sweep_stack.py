@@ -14,6 +14,8 @@ from so_transients.coherent.sweep_stack import Crossing, kept, stack
 from tests.conftest import load_group, run_imperfect_sim, run_sim, run_steps
 from tests.coherent.test_coherent_find import coherent_pipe
 
+pytestmark = pytest.mark.slow   # end to end: simulates and runs the pipeline
+
 ARCMIN = np.pi / 180 / 60
 FLARE = {"at_detector": "w16_f090_p100A", "at_time": 300.0, "t_peak": 300.0,
          "s_peak_mjy": 90.0, "t_rise": 600.0}

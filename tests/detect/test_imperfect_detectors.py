@@ -14,6 +14,8 @@ from so_transients.site.pipeline import TEMPLATE
 
 from tests.conftest import load_group, run_sim, run_steps
 
+pytestmark = pytest.mark.slow   # end to end: simulates and runs the pipeline
+
 FLARE_TIME = 40.0
 STEPS = [{"name": "transient_filter", "process": {}, "calc": True, "save": True},
          {"name": "transient_find", "calc": {}, "save": True},

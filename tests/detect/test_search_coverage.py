@@ -129,6 +129,7 @@ def _flare_fit(aman, band):
     return found[0]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("band", ["f090", "f150"])
 def test_a_group_of_two_bands_fits_each_with_its_own_response(two_band_dataset, band):
     """SO groups by wafer (both bands in one group): each band's candidates are fitted with

@@ -12,6 +12,8 @@ from so_transients.site.pipeline import run_site_pipeline, write_site_config
 
 from tests.conftest import run_sim
 
+pytestmark = pytest.mark.slow   # end to end: simulates and runs the pipeline
+
 SLOW = dict(at_detector="w16_f090_p100A", at_time=80.0, t_peak=80.0, s_peak_mjy=3000.0,
             t_rise=30.0, spectral_index=-1.0)
 FAST = dict(at_detector="w16_f090_p250A", at_time=150.0, t_peak=150.0, s_peak_mjy=3000.0,

@@ -48,6 +48,8 @@ from so_transients.site.pipeline import TEMPLATE
 
 from tests.conftest import load_group, run_sim, run_steps
 
+pytestmark = pytest.mark.slow   # end to end: simulates and runs the pipeline
+
 N_SLIDES = 10
 THRESHOLD = 3.0            # transient_find's coherent_threshold, lowered (default 4.5)
 SEEDS = (21, 22)

@@ -40,6 +40,7 @@ def significance_run(tmp_path_factory, two_flare_dataset):
     return sim, config
 
 
+@pytest.mark.slow
 def test_every_candidate_gets_a_far_in_the_archive(significance_run):
     _, config = significance_run
     assert failed_groups(config) == ""
@@ -59,6 +60,7 @@ def test_every_candidate_gets_a_far_in_the_archive(significance_run):
     assert np.all(np.diff(np.asarray(table["far"])[fitted][order]) <= 1e-12)
 
 
+@pytest.mark.slow
 def test_max_far_cuts_and_a_background_too_short_is_named(significance_run, caplog):
     sim, config = significance_run
     aman = load_group(sim, band="f090")
@@ -72,6 +74,7 @@ def test_max_far_cuts_and_a_background_too_short_is_named(significance_run, capl
                for r in caplog.records)
 
 
+@pytest.mark.slow
 def test_without_slides_far_rests_on_the_inverted_data(significance_run, caplog):
     """``n_slides: 0`` (what a paper-mode campaign runs in its windows): the same coherent_snr
     as with slides, far from the sign-inverted data alone, and no warning about slides."""
@@ -98,6 +101,7 @@ def test_without_the_step_candidates_pass_far(tmp_path):
     assert isinstance(rows, Table)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dead_mode", ["zeros", "nan"])
 def test_imperfect_detectors_keep_a_bright_flare_significant(imperfect_bright_dataset,
                                                             dead_mode):

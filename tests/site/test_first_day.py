@@ -26,6 +26,8 @@ from so_transients.site.pipeline import (
 
 from tests.conftest import run_sim
 
+pytestmark = pytest.mark.slow   # end to end: simulates and runs the pipeline
+
 QUIET_SKY = {"atmosphere": {"enabled": False}, "cmb": {"enabled": False}}
 
 

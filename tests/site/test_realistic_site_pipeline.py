@@ -18,6 +18,8 @@ from tests.site.test_site_pipeline import (
     PAPER_POINTING_ARCSEC, crossing_duration, k_pull, sky_pulls, wide_match
 )
 
+pytestmark = pytest.mark.slow   # end to end: simulates and runs the pipeline
+
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 BRIGHT = 800.0          # mJy: flares at least this bright must be found in both bands
 #: Noise detections allowed in the 2 wafer-band x 10 min: about 3 per wafer-band-hour are

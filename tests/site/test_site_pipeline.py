@@ -17,6 +17,8 @@ from so_transients.site.pipeline import failed_groups, run_site_pipeline, write_
 
 from tests.conftest import run_sim
 
+pytestmark = pytest.mark.slow   # end to end: simulates and runs the pipeline
+
 BRIGHT_FLUX = 40000.0    # mJy: far above the glitch step's n_sig = 10 per sample
 
 

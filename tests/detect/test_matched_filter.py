@@ -231,3 +231,15 @@ def test_the_second_pass_keeps_the_snr_normalization():
     optimal = amp / WHITE * np.sum(w * b * tmpl**2) / np.sqrt(nsamp * np.sum(w * b**2 * tmpl**2))
     # mean of 10 detectors' S/N: 1 / sqrt(10) each; 2 % for the PSD's own estimate
     assert abs(np.mean(double.snr[:, k]) - optimal) < 4 / np.sqrt(ndet) + 0.02 * optimal
+
+
+def test_the_number_of_worker_threads_changes_nothing():
+    """``workers`` threads each filter their own chunks: the results are the same, to the
+    bit, as with one thread (each chunk's arithmetic does not depend on the others)."""
+    rng = np.random.default_rng(12)
+    x = red_noise(rng, 40, 20000)
+    x[5, 9000:9400] += 3000.0          # a jump, removed alike
+    one = matched_filter(x, FS, SIGMA_T, FilterConfig(workers=1, chunk_dets=8))
+    two = matched_filter(x, FS, SIGMA_T, FilterConfig(workers=2, chunk_dets=8))
+    for name in ("snr", "sigma_amp", "noise_level", "excluded", "n_jumps"):
+        assert np.array_equal(getattr(one, name), getattr(two, name)), name

@@ -5,6 +5,8 @@ Subcommands:
 * ``simulate CONFIG``: simulate SO LAT observations into a sotodlib dataset;
 * ``summary CONTEXT``: describe a dataset as loaded through its context.yaml;
 * ``site-config DATASET``: the transient site preprocess config pointed at a dataset;
+* ``run CONFIG``: sotodlib's site pipeline on it, then the catalogue (in time order) and each
+  group's losses; exit status 1, naming each failed group, unless ``--partial``;
 * ``catalog ARCHIVE_OR_CONFIG -o FILE``: every group's detections in one table (ECSV, FITS or
   CSV by suffix), with which groups are missing from the archive and why;
 * ``schema``: the candidate table's columns (name, step, unit, meaning) as Markdown;
@@ -80,6 +82,40 @@ def _catalog(args):
               "the table holds only the others", file=sys.stderr)
         return 1 if args.strict else 0
     return 0
+
+
+def _run(args):
+    """The site pipeline on a config, then its catalogue and each group's losses; exit status
+    1 when any group failed (each named with its reason) unless ``--partial``."""
+    from so_transients.site.losses import group_losses, report
+    from so_transients.site.pipeline import archive_index, run_site_pipeline
+    from so_transients.site.results import archive_status, archive_table, write_table
+
+    config = Path(args.config)
+    out = Path(args.out) if args.out else archive_index(config).parent / "detections.ecsv"
+    done = run_site_pipeline(config, nproc=args.nproc, check=False)
+    if done.returncode:
+        print(f"so-transients run: {config}: the site pipeline stopped (exit "
+              f"{done.returncode}):\n{done.stderr[-3000:]}", file=sys.stderr)
+        return 1
+    status = archive_status(config)
+    table = archive_table(config)
+    if len(table):
+        table.sort("t_peak")                    # a catalogue reads in time order
+    path = write_table(table, out, config=config, obs_ids=status.obs_ids, overwrite=True)
+    print(f"{len(table)} detections written to {path}")
+    print(status.report())
+    if status.archived:
+        print("Detectors per group:")
+        print(report(group_losses(config, args.max_lost)))
+    if status.complete:
+        return 0
+    for (obs_id, group), (kind, message) in sorted(status.failed.items()):
+        print(f"so-transients run: FAILED {obs_id} {'/'.join(group)}: {kind}: {message}",
+              file=sys.stderr)
+    print(f"so-transients run: {len(status.failed)} group(s) failed; the table holds the "
+          f"others{' (--partial: exit 0)' if args.partial else ''}", file=sys.stderr)
+    return 0 if args.partial else 1
 
 
 def _schema(args):
@@ -187,6 +223,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("dataset", help="dataset folder (holds context.yaml)")
     p.add_argument("-o", "--out", help="output YAML (default: DATASET/preprocess.yaml)")
     p.set_defaults(func=_site_config)
+
+    p = add("run", "run sotodlib's site pipeline on a preprocess config, then write the "
+                   "catalogue and each group's losses; exit 1 when a group failed")
+    p.add_argument("config", help="site preprocess config (e.g. from `so-transients site-config`)")
+    p.add_argument("-o", "--out", default=None,
+                   help="detections table (default: detections.ecsv beside the archive)")
+    p.add_argument("--nproc", type=int, default=1, help="worker processes of the site pipeline")
+    p.add_argument("--partial", action="store_true",
+                   help="exit 0 when some groups failed (their failures are still printed)")
+    p.add_argument("--max-lost", type=float, default=0.3,
+                   help="warn about groups that could not use more than this fraction of their "
+                        "detectors (default 0.3)")
+    p.set_defaults(func=_run)
 
     p = add("catalog", "collect detections from a preprocess archive")
     p.add_argument("archive", help="archive index (.sqlite) or preprocess config (.yaml)")

@@ -58,25 +58,37 @@ def _site_config(args):
     print(write_site_config(args.dataset, args.out))
 
 
-def _catalog(args):
-    """Exit status 1 with ``--strict`` when a group expected is not in the archive."""
+def _write_catalog(archive, out, overwrite, max_lost, candidates=False, by_time=False,
+                   groups=None):
+    """Write the archive's detections (``candidates``: every candidate) to ``out``, print
+    what was written, the groups expected, archived and failed, and each group's losses
+    (also written to ``groups`` when given); return the :class:`ArchiveStatus`."""
     from so_transients.site.losses import group_losses, report
-    from so_transients.site.results import (
-        archive_status, archive_table, output_format, write_table
-    )
+    from so_transients.site.results import archive_status, archive_table, write_table
 
-    output_format(args.out, args.overwrite)          # refuse before the slow part
-    status = archive_status(args.archive)
-    table = archive_table(args.archive, detected_only=not args.all)
-    path = write_table(table, args.out, config=status.config, obs_ids=status.obs_ids,
-                       overwrite=args.overwrite)
-    print(f"{len(table)} {'candidates' if args.all else 'detections'} written to {path}")
+    status = archive_status(archive)
+    table = archive_table(archive, detected_only=not candidates)
+    if by_time and len(table):
+        table.sort("t_peak")
+    path = write_table(table, out, config=status.config, obs_ids=status.obs_ids,
+                       overwrite=overwrite)
+    print(f"{len(table)} {'candidates' if candidates else 'detections'} written to {path}")
     print(status.report())
-    losses = group_losses(args.archive, args.max_lost)
+    losses = group_losses(archive, max_lost)
     print("Detectors per group:")
     print(report(losses))
-    if args.groups:
-        losses.write(args.groups, overwrite=args.overwrite)
+    if groups:
+        losses.write(groups, overwrite=overwrite)
+    return status
+
+
+def _catalog(args):
+    """Exit status 1 with ``--strict`` when a group expected is not in the archive."""
+    from so_transients.site.results import output_format
+
+    output_format(args.out, args.overwrite)          # refuse before the slow part
+    status = _write_catalog(args.archive, args.out, args.overwrite, args.max_lost,
+                            candidates=args.all, groups=args.groups)
     if not status.complete:
         print(f"so-transients catalog: warning: {len(status.failed)} group(s) failed or missing; "
               "the table holds only the others", file=sys.stderr)
@@ -87,9 +99,7 @@ def _catalog(args):
 def _run(args):
     """The site pipeline on a config, then its catalogue and each group's losses; exit status
     1 when any group failed (each named with its reason) unless ``--partial``."""
-    from so_transients.site.losses import group_losses, report
     from so_transients.site.pipeline import archive_index, run_site_pipeline
-    from so_transients.site.results import archive_status, archive_table, write_table
 
     config = Path(args.config)
     out = Path(args.out) if args.out else archive_index(config).parent / "detections.ecsv"
@@ -98,16 +108,8 @@ def _run(args):
         print(f"so-transients run: {config}: the site pipeline stopped (exit "
               f"{done.returncode}):\n{done.stderr[-3000:]}", file=sys.stderr)
         return 1
-    status = archive_status(config)
-    table = archive_table(config)
-    if len(table):
-        table.sort("t_peak")                    # a catalogue reads in time order
-    path = write_table(table, out, config=config, obs_ids=status.obs_ids, overwrite=True)
-    print(f"{len(table)} detections written to {path}")
-    print(status.report())
-    if status.archived:
-        print("Detectors per group:")
-        print(report(group_losses(config, args.max_lost)))
+    # a catalogue reads in time order
+    status = _write_catalog(config, out, overwrite=True, max_lost=args.max_lost, by_time=True)
     if status.complete:
         return 0
     for (obs_id, group), (kind, message) in sorted(status.failed.items()):

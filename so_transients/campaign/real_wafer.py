@@ -19,6 +19,7 @@ import yaml
 from astropy.table import Table
 
 from so_transients.campaign.matching import group_crossings, match
+from so_transients.campaign.search_steps import before_fit
 from so_transients.common.angles import ARCMIN
 from so_transients.common.bands import get_band
 from so_transients.common.flare_model import flare_flux
@@ -42,11 +43,9 @@ def coherent_pipe(paper_pipe, max_far):
     for step in pipe:
         if step["name"] == "transient_find":
             step["calc"] = {**step["calc"], "mode": "coherent"}
-    k = [s["name"] for s in pipe].index("transient_fit")
-    pipe.insert(k, {"name": "transient_significance",
-                    "calc": {"n_slides": 100, "slide_groups": 4, "max_far": max_far},
-                    "save": True})
-    return pipe
+    return before_fit(pipe, {"name": "transient_significance",
+                             "calc": {"n_slides": 100, "slide_groups": 4, "max_far": max_far},
+                             "save": True})
 
 
 def flare_list(seed, duration, n_bright=10, n_faint=5, t_rise=10.0):

@@ -58,10 +58,15 @@ def with_coherent_snr(search_steps, settings) -> list:
     statistic the campaign's pooled background turns into a ``far``, :mod:`.far_budget`),
     and ``transient_fit`` still decides ``detected``."""
     calc = {**dataclasses.asdict(settings), "n_slides": 0, "max_far": None}
-    names = [step["name"] for step in search_steps]
+    return before_fit(search_steps, {"name": "transient_significance", "calc": calc})
+
+
+def before_fit(steps, entry) -> list:
+    """``steps`` (config entries) with ``entry`` inserted before ``transient_fit`` (at the
+    end without one), where ``transient_significance`` belongs."""
+    names = [step["name"] for step in steps]
     at = names.index("transient_fit") if "transient_fit" in names else len(names)
-    return (search_steps[:at] + [{"name": "transient_significance", "calc": calc}]
-            + search_steps[at:])
+    return steps[:at] + [entry] + steps[at:]
 
 
 class SearchSteps:

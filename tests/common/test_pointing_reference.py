@@ -151,6 +151,25 @@ def astropy_radec(grid, **weather):
     return c.ra.rad, c.dec.rad
 
 
+def pointing_aman(t, az, el, roll):
+    """An AxisManager with the grid's detectors (focal_plane) and the boresight ``az``,
+    ``el``, ``roll`` (rad) at ctimes ``t``: what sotodlib.coords reads."""
+    from sotodlib import core
+
+    names = [f"d{k}" for k in range(len(XI))]
+    aman = core.AxisManager(core.LabelAxis("dets", names), core.OffsetAxis("samps", len(t)))
+    aman.wrap("timestamps", np.asarray(t), [(0, "samps")])
+    bore = core.AxisManager(aman.samps)
+    for name, value in (("az", az), ("el", el), ("roll", roll)):
+        bore.wrap(name, np.asarray(value), [(0, "samps")])
+    aman.wrap("boresight", bore)
+    fp = core.AxisManager(aman.dets)
+    for name, value in (("xi", XI), ("eta", ETA), ("gamma", np.zeros(len(XI)))):
+        fp.wrap(name, value, [(0, "dets")])
+    aman.wrap("focal_plane", fp)
+    return aman
+
+
 def separation(ra1, dec1, ra2, dec2):
     """Great-circle distance (arcsec), Vincenty's formula."""
     return SkyCoord(ra1 * u.rad, dec1 * u.rad).separation(SkyCoord(ra2 * u.rad, dec2 * u.rad)).arcsec
@@ -182,7 +201,6 @@ def test_detector_radec_equals_sotodlib_get_radec(roll_deg):
     quaternions into lon/lat by its own arithmetic, 1.7 mas at most from
     ``so3g.proj.quat.decompose_lonlat`` (measured, the boresight included): 10 mas allowed. A
     convention error (xi's sign, roll's, the pi turn of the boresight frame) is arcminutes."""
-    from sotodlib import core
     from sotodlib.coords import helpers
 
     from so_transients.sim.scan import ScanPattern, boresight
@@ -194,17 +212,7 @@ def test_detector_radec_equals_sotodlib_get_radec(roll_deg):
     az = np.r_[az, np.radians([a for _ in TIMES for a, _ in AZ_EL])]
     el = np.r_[el, np.radians([e for _ in TIMES for _, e in AZ_EL])]
     roll = np.full(len(t), np.radians(roll_deg))
-    names = [f"d{k}" for k in range(len(XI))]
-    aman = core.AxisManager(core.LabelAxis("dets", names), core.OffsetAxis("samps", len(t)))
-    aman.wrap("timestamps", t, [(0, "samps")])
-    bore = core.AxisManager(aman.samps)
-    for name, value in (("az", az), ("el", el), ("roll", roll)):
-        bore.wrap(name, value, [(0, "samps")])
-    aman.wrap("boresight", bore)
-    fp = core.AxisManager(aman.dets)
-    for name, value in (("xi", XI), ("eta", ETA), ("gamma", np.zeros(len(XI)))):
-        fp.wrap(name, value, [(0, "dets")])
-    aman.wrap("focal_plane", fp)
+    aman = pointing_aman(t, az, el, roll)
 
     ref = helpers.get_radec(aman)                          # (dets, samps, 4)
     q = pointing.boresight_q(aman)                        # what the search steps use
@@ -221,21 +229,10 @@ def test_detector_radec_equals_sotodlib_get_radec(roll_deg):
 def test_horizon_offsets_equal_sotodlib_get_horiz():
     """The simulator's per-detector horizon pointing (``horizon_offsets``, used for the
     atmosphere) equals sotodlib.coords.get_horiz for a boresight at azimuth 0."""
-    from sotodlib import core
     from sotodlib.coords import helpers
 
     el = np.radians([30.0, 50.0, 70.0])
-    names = [f"d{k}" for k in range(len(XI))]
-    aman = core.AxisManager(core.LabelAxis("dets", names), core.OffsetAxis("samps", len(el)))
-    aman.wrap("timestamps", np.full(len(el), TIMES[0]), [(0, "samps")])
-    bore = core.AxisManager(aman.samps)
-    for name, value in (("az", np.zeros(len(el))), ("el", el), ("roll", np.zeros(len(el)))):
-        bore.wrap(name, value, [(0, "samps")])
-    aman.wrap("boresight", bore)
-    fp = core.AxisManager(aman.dets)
-    for name, value in (("xi", XI), ("eta", ETA), ("gamma", np.zeros(len(XI)))):
-        fp.wrap(name, value, [(0, "dets")])
-    aman.wrap("focal_plane", fp)
+    aman = pointing_aman(np.full(len(el), TIMES[0]), np.zeros(len(el)), el, np.zeros(len(el)))
     ref = helpers.get_horiz(aman)
     for k, e in enumerate(el):
         daz, det_el = pointing.horizon_offsets(XI, ETA, e)

@@ -9,7 +9,7 @@ A dataset folder holds::
     metadata/det_info.{h5,sqlite} det_info fields (wafer_slot, tube_slot, bandpass, det_id, pol,
                                   pixel) through a ManifestDb, merged into det_info
     metadata/focal_plane.{h5,sqlite}  xi, eta, gamma (radians) through a ManifestDb
-    metadata/det_cal.{h5,sqlite}  only with detector time constants: tau_eff (s) as SO's det_cal
+    metadata/det_cal.{h5,sqlite}  detector time constants: tau_eff (s) as SO's det_cal (0 without)
                                   (``aman.det_cal.tau_eff``, what sotodlib's timeconst_filter reads)
     truth/flares.ecsv, truth/point_sources.ecsv, truth/glitches.ecsv, and with the instrument's
     imperfections or moving sources: truth/detectors.ecsv, truth/jumps.ecsv,

@@ -303,8 +303,9 @@ def _simulate_obs(config, writer, sky, tl: Timeline, tube, obs_id, block, dets,
                   flaws: DetectorFlaws, sources: _Sources, progress, workers, detsets, truth):
     """Write one observation (``detsets`` of one tube); appends its glitch, jump and gap
     truth tables to ``truth``."""
-    tau = flaws.tau if config.time_constants.tau_ms is not None else None
-    writer.add_detector_metadata(obs_id, tube, metadata_positions(dets, flaws), tau=tau)
+    # det_cal as SO's real data always has it (tau_eff 0 for instantaneous detectors), so
+    # that a site config deconvolving time constants runs on every simulated dataset
+    writer.add_detector_metadata(obs_id, tube, metadata_positions(dets, flaws), tau=flaws.tau)
     pattern = config.scan
     writer.add_observation(obs_id, {
         "timestamp": tl.timestamps[0], "duration": tl.timestamps[-1] - tl.timestamps[0],

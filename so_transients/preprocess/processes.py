@@ -21,7 +21,7 @@ tables. Nothing but package registration imports this module.
 from __future__ import annotations
 
 import logging
-from dataclasses import fields
+from dataclasses import fields, replace
 
 import numpy as np
 from sotodlib import core
@@ -495,7 +495,8 @@ class TransientSignificance(_Preprocess):
 
       - name: transient_significance
         calc:
-          n_slides: 100                   # background live time: 100 x the data's (0: none)
+          n_slides: 100                   # background live time: 100 x the data's (0: none;
+          #                                 null: as many as max_far needs, at least 100)
           min_slide_s: 2.0                # every detector shifted at least this far
           slide_groups: 4                 # detectors slid alike in 4 random groups (0: each
           #                                 its own offset, about 4x the cost)
@@ -525,21 +526,22 @@ class TransientSignificance(_Preprocess):
         rows = candidates.from_aman(cands, CAND_AXIS)
         f = aman.transient_filter
         bands = np.asarray(f.bandpass).astype(str)
+        scan, t = np.asarray(aman[SCAN_FIELD]), np.asarray(aman.timestamps)
+        searched_hours = np.count_nonzero(scan >= 0) * np.median(np.diff(t)) / 3600.0
+        cfg = replace(self.cfg, n_slides=self.cfg.slides_for(searched_hours))
         result, live, scale = significance_by_band(
-            aman.transient_snr, np.asarray(aman.timestamps), pointing.boresight_q(aman),
-            np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta),
-            np.asarray(aman[SCAN_FIELD]),
+            aman.transient_snr, t, pointing.boresight_q(aman),
+            np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta), scan,
             np.asarray(f.sigma_amp), ~np.asarray(f.dead, bool), np.asarray(f.beam_sigma),
-            bands, rows, self.cfg, _vetoes(cands), _stacking(cands))
+            bands, rows, cfg, _vetoes(cands), _stacking(cands))
         if not np.isfinite(live):
             log.warning("%s: %s: no band with live detectors: far not computed (NaN), "
                         "candidates pass", self.name, GroupName(aman))
-        elif self.cfg.n_slides and not live > 0:
+        elif cfg.n_slides and not live > 0:
             log.warning("%s: %s: no constant-speed scan with live detectors long enough for "
                         "time slides: far from the sign-inverted data alone", self.name,
                         GroupName(aman))
-        elif self.cfg.n_slides and self.cfg.max_far is not None \
-                and live * self.cfg.max_far < 0.5:
+        elif cfg.n_slides and cfg.max_far is not None and live * cfg.max_far < 0.5:
             # a statistic above every slide maximum gets far_slides = 0.5 / live
             log.warning("%s: %s: %.2f h of slides cannot resolve max_far = %g per hour (every "
                         "single-crossing candidate has far >= %.3g): raise n_slides",

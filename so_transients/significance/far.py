@@ -59,8 +59,9 @@ from so_transients.significance.tail_model import model_count_above
 
 @dataclass
 class SignificanceConfig:
-    n_slides: int = 100              # time slides per scan: background live time / data's
-    #                                  (0: none; far from the sign-inverted data alone)
+    n_slides: int | None = 100       # time slides per scan: background live time / data's
+    #                                  (0: none, far from the sign-inverted data alone; None:
+    #                                  as many as max_far needs, see slides_for)
     min_slide_s: float = 2.0         # every detector is shifted at least this far
     slide_groups: int = 4            # detectors slid alike in this many random groups (0:
     #                                  each its own offset, about 4x the cost at f090)
@@ -86,8 +87,11 @@ class SignificanceConfig:
 
     def __post_init__(self):
         self.slide_groups = int(self.slide_groups)
+        if self.n_slides is None and self.max_far is None:
+            raise ConfigError("transient_significance: n_slides: null (as many as max_far "
+                              "needs) requires max_far")
         for key in ("n_slides", "slide_groups"):
-            if getattr(self, key) < 0:
+            if (getattr(self, key) or 0) < 0:
                 raise ConfigError(f"transient_significance: {key} must be 0 or more, got "
                                   f"{getattr(self, key)}")
         positive("transient_significance", min_slide_s=self.min_slide_s, row_step=self.row_step,
@@ -97,6 +101,18 @@ class SignificanceConfig:
                  sidelobe_window=self.sidelobe_window,
                  max_opposite_ratio=self.max_opposite_ratio)
         share("transient_significance", max_single_share=self.max_single_share)
+
+
+    def slides_for(self, searched_hours) -> int:
+        """The number of time slides for a group searched over ``searched_hours``: ``n_slides``
+        as set, or for ``n_slides: null`` enough that the slides' live time is at least
+        ``0.55 / max_far`` hours (a candidate above every slide maximum then has
+        ``far_slides`` = 0.5 / live, 10 % below ``max_far``), and at least 100."""
+        if self.n_slides is not None:
+            return self.n_slides
+        if not searched_hours > 0:
+            return 100
+        return max(100, int(np.ceil(0.55 / (self.max_far * searched_hours) - 1e-9)))
 
 
 @dataclass

@@ -176,3 +176,19 @@ def test_a_bright_sources_filter_sidelobes_are_not_inverted_background():
 
     assert near_source(SignificanceConfig()) == 0
     assert near_source(SignificanceConfig(max_opposite_ratio=1e9)) > 0
+
+
+def test_slides_follow_max_far_when_n_slides_is_null():
+    from so_transients.common.step_config import ConfigError
+    from so_transients.significance.far import SignificanceConfig
+
+    cfg = SignificanceConfig(n_slides=None, max_far=0.005)
+    # 0.55 / max_far = 110 h of slides: 10 minutes searched need 660, an hour 110
+    assert cfg.slides_for(600 / 3600) == 660
+    assert cfg.slides_for(1.0) == 110
+    assert cfg.slides_for(10.0) == 100                  # never fewer than 100
+    # a candidate above every slide maximum then passes max_far: 0.5 / live < max_far
+    assert 0.5 / (cfg.slides_for(0.137) * 0.137) < cfg.max_far
+    assert SignificanceConfig(n_slides=7, max_far=0.005).slides_for(1.0) == 7
+    with pytest.raises(ConfigError, match="requires max_far"):
+        SignificanceConfig(n_slides=None)

@@ -9,7 +9,7 @@
     python benchmarks/bench_chain.py --significance-slides 100 --slide-groups 0  # per detector
 
 Simulates the TOD (white noise, atmosphere, CMB, flares and glitches), loads it through its
-sotodlib Context, runs the standard steps of ``configs/preprocess_transients.yaml`` that come
+sotodlib Context, runs the standard steps of ``configs/preprocess_paper.yaml`` that come
 before the transient search (turnaround flags, detrend, glitch flags, PSD, noise, PCA; not
 timed), then times on that same array (median of ``--repeats`` runs):
 
@@ -58,7 +58,7 @@ TARGETS = {"chain_over_floor": 1.5, "speedup_vs_sotodlib": 2.0, "peak_over_signa
 
 def standard_steps():
     """The standard sotodlib steps of the shipped site config, before the transient search."""
-    path = os.path.join(os.path.dirname(__file__), "..", "configs", "preprocess_transients.yaml")
+    path = os.path.join(os.path.dirname(__file__), "..", "configs", "preprocess_paper.yaml")
     with open(path) as f:
         steps = yaml.safe_load(f)["process_pipe"]
     return steps[:[s["name"] for s in steps].index("transient_filter")]

@@ -2,8 +2,9 @@
 
 1. simulate the default observation (``configs/sim_demo.yaml``: one MF wafer, 10 minutes, a
    handful of bright and faint flares) into a sotodlib dataset;
-2. run ``python -m sotodlib.site_pipeline.preprocess_tod`` with
-   ``configs/preprocess_transients.yaml`` pointed at it;
+2. run ``python -m sotodlib.site_pipeline.preprocess_tod`` with the production config
+   (``configs/preprocess_production.yaml``: coherent search, false-alarm rates, ``max_far``)
+   pointed at it;
 3. read every group's detections from the archive, match them to the injected flares
    (0.5 s, 0.5') and print both, with the per-detection plots' location;
 4. join the detections into events and measure their light curves by forced photometry
@@ -64,6 +65,7 @@ def run_demo(dataset: Path, nproc=2) -> str:
     if errors:
         raise RuntimeError(f"the site pipeline failed on some groups:\n{errors}")
     detections = archive_table(config)
+    detections.sort("t_peak")                       # a catalogue reads in time order
     write_table(detections, dataset / "detections.ecsv", config=config, overwrite=True)
     matched, flares, crossings = compare_with_truth(dataset, detections)
     start = min(o["start_time"] for o in core.Context(str(dataset / "context.yaml")).obsdb.query())

@@ -50,7 +50,7 @@ from so_transients.significance.far import SignificanceConfig, inverted_rate, sc
 from so_transients.sim.config import SimConfig  # noqa: E402
 from so_transients.sim.simulate import simulate  # noqa: E402
 
-CONFIG = os.path.join(os.path.dirname(__file__), "..", "configs", "preprocess_transients.yaml")
+CONFIG = os.path.join(os.path.dirname(__file__), "..", "configs", "preprocess_paper.yaml")
 
 
 def filtered_group(minutes, tmp, seed, glitches=True):

@@ -4,7 +4,7 @@
 
 For ``none``, every section of ``configs/sim_realistic.yaml`` alone, and ``all``, runs
 ``studies/configs/campaign_quick_realistic.yaml`` (f090, t_r 0.5 and 5 s, 150-1200 mJy, 20 flares a
-cell, 10 minutes of one wafer, ``configs/preprocess_realistic.yaml``) with only that
+cell, 10 minutes of one wafer, ``studies/configs/preprocess_paper_realistic.yaml``) with only that
 simulation section switched on, then prints one row per case: efficiency at 300 and 600 mJy
 (summed over both t_r), the 50 % and 90 % thresholds at t_r = 5 s, and the noise-only and
 sign-inverted false detections per wafer-band-hour. Campaigns already done in ``--out`` are

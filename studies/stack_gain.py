@@ -44,7 +44,7 @@ from so_transients.common.angles import ARCMIN, sky_separation  # noqa: E402
 from so_transients.detect.find import SCAN_FIELD  # noqa: E402
 from so_transients.common.scan_geometry import sample_rate  # noqa: E402
 from so_transients.significance.far import Background, SignificanceConfig, band_background
-from so_transients.site.pipeline import TEMPLATE, apply_overrides  # noqa: E402
+from so_transients.site.pipeline import PAPER, apply_overrides  # noqa: E402
 from so_transients.sim.config import SimConfig  # noqa: E402
 from so_transients.sim.simulate import simulate  # noqa: E402
 
@@ -52,7 +52,7 @@ from so_transients.sim.simulate import simulate  # noqa: E402
 def pipe(window, n_slides=20):
     """The shipped steps, transient_find in coherent mode with sweep stacking, the fit cut
     at S/N 3 (the budget decides), and transient_significance before the fit."""
-    steps = apply_overrides(yaml.safe_load(TEMPLATE.read_text())["process_pipe"],
+    steps = apply_overrides(yaml.safe_load(PAPER.read_text())["process_pipe"],
                             {"transient_find": {"calc": {"mode": "coherent",
                                                          "stack_window": window}},
                              "transient_fit": {"calc": {"min_snr": 3.0}}})

@@ -1,5 +1,5 @@
 """Measuring the events step: flares through the full site pipeline and ``so-transients
-events``, compared with the truth (``so-transients events-check CONFIG``).
+events``, compared with the truth (``so-transients study events-check CONFIG``).
 
 Two simulated datasets from one config: one with random flares (log-uniform peak flux and
 rise time, a known spectral index), one noise-only (another seed). Each goes through the site
@@ -47,7 +47,7 @@ class EventsCheckConfig:
     simulation: dict
     seed: int = 2026
     nproc: int = 2
-    preprocess: str = "configs/preprocess_transients.yaml"
+    preprocess: str = "configs/preprocess_paper.yaml"
     events: dict = field(default_factory=dict)     # sections of an events YAML
     max_offset_arcmin: float = 0.5
     window_pad_s: float = 5.0          # detections this long around the active window match

@@ -2,7 +2,7 @@
 
 Five steps, registered with sotodlib's ``Pipeline`` when ``so_transients`` is imported, to be
 listed after the standard steps of a site preprocess config (see
-``configs/preprocess_transients.yaml``):
+``configs/preprocess_paper.yaml``):
 
 ``transient_filter`` -> ``transient_find`` -> ``transient_cuts`` -> ``transient_significance``
 -> ``transient_fit``

@@ -17,7 +17,14 @@ from pathlib import Path
 
 import yaml
 
-TEMPLATE = Path(__file__).resolve().parents[2] / "configs" / "preprocess_transients.yaml"
+#: the repository's configs folder
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+#: the production site config: coherent search with calibrated false-alarm rates
+PRODUCTION = CONFIGS / "preprocess_production.yaml"
+#: the reference paper's method (Clancy et al. 2025)
+PAPER = CONFIGS / "preprocess_paper.yaml"
+#: the config ``so-transients site-config`` writes by default
+TEMPLATE = PRODUCTION
 
 
 def archive_index(archive_or_config) -> Path:

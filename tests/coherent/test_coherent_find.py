@@ -127,19 +127,20 @@ def coherent_pipe():
     """The shipped site config's steps with ``transient_find`` in coherent mode."""
     import yaml
 
-    from so_transients.site.pipeline import TEMPLATE, apply_overrides
-    return apply_overrides(yaml.safe_load(TEMPLATE.read_text())["process_pipe"], COHERENT)
+    from so_transients.site.pipeline import PAPER, apply_overrides
+    return apply_overrides(yaml.safe_load(PAPER.read_text())["process_pipe"], COHERENT)
 
 
 @pytest.fixture(scope="module")
 def coherent_site_run(tmp_path_factory, two_flare_dataset):
     """Five minutes of w16 at f090 with two flares, the shipped config in coherent mode."""
-    from so_transients.site.pipeline import run_site_pipeline, write_site_config
+    from so_transients.site.pipeline import PAPER, run_site_pipeline, write_site_config
 
     root = tmp_path_factory.mktemp("coherent")
     sim = two_flare_dataset
     config = write_site_config(sim.context.parent, path=root / "preprocess.yaml",
-                               overrides=COHERENT, results=root / "preprocess")
+                               overrides=COHERENT, results=root / "preprocess",
+                               template=PAPER)
     run_site_pipeline(config)
     return sim, config
 

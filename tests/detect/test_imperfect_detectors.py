@@ -10,7 +10,7 @@ from so_transients.common import pointing
 from so_transients.common.angles import ARCMIN, ARCSEC
 from so_transients.detect.motion import flag_moving
 from so_transients.site.results import proc_table
-from so_transients.site.pipeline import TEMPLATE
+from so_transients.site.pipeline import PAPER
 
 from tests.conftest import load_group, run_sim, run_steps
 
@@ -133,7 +133,7 @@ def test_fifteen_percent_bad_detectors_keep_the_fitted_snr(dataset, all_alive, k
 
 
 def shipped_steps():
-    with open(TEMPLATE) as f:
+    with open(PAPER) as f:
         return yaml.safe_load(f)["process_pipe"]
 
 

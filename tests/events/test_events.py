@@ -193,11 +193,11 @@ def test_events_config_reads_the_shipped_yaml_and_refuses_unknown_keys(tmp_path)
     import yaml
 
     from so_transients.events.config import load_events_config
-    from so_transients.site.pipeline import write_site_config
+    from so_transients.site.pipeline import PAPER, write_site_config
     from so_transients.common.step_config import ConfigError
 
     (tmp_path / "context.yaml").write_text("tags: {}\n")
-    site = write_site_config(tmp_path)
+    site = write_site_config(tmp_path, template=PAPER)
     shipped = yaml.safe_load((Path(__file__).parents[2] / "configs" /
                               "events_demo.yaml").read_text())
     shipped.update(preprocess=str(site), output=str(tmp_path / "ev"))

@@ -44,7 +44,7 @@ from so_transients.common import candidates, pointing
 from so_transients.common.scan_geometry import sample_rate
 from so_transients.detect.find import SCAN_FIELD
 from so_transients.significance.far import SignificanceConfig, band_background
-from so_transients.site.pipeline import TEMPLATE
+from so_transients.site.pipeline import PAPER
 
 from tests.conftest import load_group, run_sim, run_steps
 
@@ -62,7 +62,7 @@ TAIL = 0.0015
 def search_steps():
     """The shipped steps up to transient_filter, then transient_find in coherent mode and
     transient_significance."""
-    pipe = yaml.safe_load(TEMPLATE.read_text())["process_pipe"]
+    pipe = yaml.safe_load(PAPER.read_text())["process_pipe"]
     upto = [s["name"] for s in pipe].index("transient_filter") + 1
     find = copy.deepcopy(next(s for s in pipe if s["name"] == "transient_find"))
     find["calc"].update(mode="coherent", coherent_threshold=THRESHOLD)

@@ -10,7 +10,7 @@ from so_transients.coherent.config import CoherentConfig
 from so_transients.common import candidates
 from so_transients.site.results import archive_table
 from so_transients.site.pipeline import (
-    TEMPLATE, failed_groups, run_site_pipeline, write_site_config
+    PAPER, failed_groups, run_site_pipeline, write_site_config
 )
 
 from tests.conftest import load_group, run_steps
@@ -32,7 +32,7 @@ def significance_run(tmp_path_factory, two_flare_dataset):
     root = tmp_path_factory.mktemp("significance")
     sim = two_flare_dataset
     config = write_site_config(sim.context.parent, path=root / "preprocess.yaml",
-                               results=root / "preprocess")
+                               results=root / "preprocess", template=PAPER)
     cfg = yaml.safe_load(config.read_text())
     cfg["process_pipe"] = with_significance(cfg["process_pipe"])
     config.write_text(yaml.safe_dump(cfg, sort_keys=False))
@@ -110,7 +110,7 @@ def test_imperfect_detectors_keep_a_bright_flare_significant(imperfect_bright_da
     bad detectors first) with significance: the bright flare is detected with a finite Z
     beyond every background maximum, and the Z scale stays finite."""
     sim = imperfect_bright_dataset(dead_mode)
-    pipe = yaml.safe_load(TEMPLATE.read_text())["process_pipe"]
+    pipe = yaml.safe_load(PAPER.read_text())["process_pipe"]
     aman = load_group(sim, band="f090")
     run_steps(aman, with_significance([s for s in pipe if s["name"] in candidates.STEPS
                                        or s["name"] == "transient_filter"]))

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from astropy.table import Table
 
-from so_transients.site.pipeline import failed_groups, run_site_pipeline, write_site_config
+from so_transients.site.pipeline import PAPER, failed_groups, run_site_pipeline, write_site_config
 from so_transients.site.results import archive_table
 
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(
@@ -47,7 +47,8 @@ def serial_and_mpi(tmp_path_factory, noisy_dataset):
     configs = {}
     for name in ("serial", "mpi"):
         configs[name] = write_site_config(noisy_dataset.context.parent,
-                                          path=root / f"{name}.yaml", results=root / name)
+                                          path=root / f"{name}.yaml", results=root / name,
+                                          template=PAPER)
     run_site_pipeline(configs["serial"])
     mpi("-m", "sotodlib.site_pipeline.preprocess_tod", str(configs["mpi"]), "--nproc", "2",
         cwd=root)

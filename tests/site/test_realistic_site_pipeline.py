@@ -1,7 +1,7 @@
 """End to end on imperfect detectors: configs/sim_realistic.yaml (dead, noisy, mis-calibrated,
 slow detectors, focal-plane errors, jumps, cosmic rays, a 10 Jy steady source and a moving
-source), `python -m sotodlib.site_pipeline.preprocess_tod` with configs/preprocess_realistic.yaml,
-results read from the archive."""
+source), `python -m sotodlib.site_pipeline.preprocess_tod` with the production config
+(configs/preprocess_production.yaml), results read from the archive."""
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +12,9 @@ from so_transients.common.angles import ARCSEC
 from so_transients.site.results import archive_table, observation_table
 from so_transients.sim.config import load_config
 from so_transients.sim.simulate import simulate
-from so_transients.site.pipeline import failed_groups, run_site_pipeline, write_site_config
+from so_transients.site.pipeline import (
+    PRODUCTION, failed_groups, run_site_pipeline, write_site_config
+)
 
 from tests.site.test_site_pipeline import (
     PAPER_POINTING_ARCSEC, crossing_duration, k_pull, sky_pulls, wide_match
@@ -33,7 +35,7 @@ def realistic_run(tmp_path_factory):
     sim = simulate(load_config(CONFIGS / "sim_realistic.yaml", {"output": str(root)}),
                    progress=False)
     known = root / "truth" / "point_sources.ecsv"        # the steady source is catalogued
-    config = write_site_config(root, template=CONFIGS / "preprocess_realistic.yaml",
+    config = write_site_config(root, template=PRODUCTION,
                                overrides={"transient_cuts": {"calc": {"known_sources":
                                                                       str(known)}}})
     run_site_pipeline(config, nproc=2)

@@ -7,7 +7,7 @@ import yaml
 from astropy.table import Table
 
 from so_transients import cli
-from so_transients.site.pipeline import write_site_config
+from so_transients.site.pipeline import PAPER, write_site_config
 
 pytestmark = pytest.mark.slow
 
@@ -16,7 +16,7 @@ pytestmark = pytest.mark.slow
 def config(tmp_path_factory, two_flare_dataset):
     root = tmp_path_factory.mktemp("run")
     return write_site_config(two_flare_dataset.context.parent, path=root / "preprocess.yaml",
-                             results=root / "preprocess")
+                             results=root / "preprocess", template=PAPER)
 
 
 def test_a_good_run_exits_0_with_the_catalogue_in_time_order(config, capsys):

@@ -13,7 +13,7 @@ from sotodlib.preprocess import preprocess_util as pp_util
 from so_transients.campaign.matching import compare_with_truth, match
 from so_transients.common.angles import ARCMIN, ARCSEC
 from so_transients.site.results import archive_entries, archive_table, observation_table
-from so_transients.site.pipeline import failed_groups, run_site_pipeline, write_site_config
+from so_transients.site.pipeline import PAPER, failed_groups, run_site_pipeline, write_site_config
 
 from tests.conftest import run_sim
 
@@ -33,7 +33,7 @@ def flare_run(tmp_path_factory):
                                     "t_peak": 150.0, "s_peak_mjy": BRIGHT_FLUX,
                                     "t_rise": 1.0}]},
                   glitches={"enabled": True, "rate_per_hour": 200})
-    config = write_site_config(root)
+    config = write_site_config(root, template=PAPER)
     run_site_pipeline(config)
     return sim, config
 
@@ -183,7 +183,7 @@ def test_noise_only_observation_has_few_false_detections(tmp_path):
     """Stated rate: at most 1 false detection in 5 minutes of one wafer-band (none seen in
     the demo's 20 wafer-band minutes)."""
     run_sim(tmp_path, seed=5, observation={"duration": 300.0}, instrument={"bands": ["f090"]})
-    config = write_site_config(tmp_path)
+    config = write_site_config(tmp_path, template=PAPER)
     run_site_pipeline(config)
     assert failed_groups(config) == ""
     assert len(archive_table(config)) <= 1
@@ -197,7 +197,7 @@ def test_a_bad_group_fails_alone_and_is_recorded(tmp_path):
         t = f["timestamps"][()]
         t[5000:] += 3.0                                   # a 3 s gap in this detset
         f["timestamps"][...] = t
-    config = write_site_config(tmp_path)
+    config = write_site_config(tmp_path, template=PAPER)
     run_site_pipeline(config)
     errors = failed_groups(config)
     assert "f150" in errors and "gaps" in errors and obs in errors

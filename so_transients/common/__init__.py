@@ -9,6 +9,7 @@
 - :mod:`.candidates`: the candidate schema every step, table and campaign shares
 - :mod:`.step_config`: a step's YAML block read into its config dataclass, checked
 - :mod:`.parallel`: independent work dispatched through sotodlib's executor
+- :mod:`.tables`: tables read back as written (ECSV, FITS, CSV)
 
 Imports nothing from the other subpackages.
 """

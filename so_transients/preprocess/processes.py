@@ -599,9 +599,11 @@ class TransientFit(_Preprocess):
     ``so-transients catalog`` collects these into one table.
 
     ``plot``: one PNG per detection under the pipeline's ``plot_dir``, as
-    ``<plot_dir>/<ctime[:5]>/<obs_id>/<step>_<wafer>_<band>_cand<cand_id>.png``: the
-    contributing detectors' amplitude with the fitted beam model over them, flux with error,
-    fitted S/N, RA/Dec and UTC time, and their place on the focal plane.
+    ``<plot_dir>/<ctime[:5]>/<obs_id>/transient_fit_<wafer>_<band>_cand<cand_id>.png`` (named
+    by the step, not by its place in ``process_pipe``): the contributing detectors' amplitude
+    with the fitted beam model over them, flux with error, fitted S/N, RA/Dec and UTC time,
+    the ``transient_find`` mode that found it with its ``map_z`` and ``far``, and the
+    detectors' place on the focal plane (:func:`so_transients.preprocess.plots.plot_detection`).
 
     Example config block::
 
@@ -640,11 +642,8 @@ class TransientFit(_Preprocess):
     def plot(self, aman, proc_aman, filename):
         if not self.plot_cfgs:
             return
-        from so_transients.preprocess.plots import detection_name, plot_detection
+        from so_transients.preprocess.plots import detection_filename, plot_detection
 
         cands = aman.transient_candidates
         for c in np.flatnonzero(np.asarray(cands.detected, bool)):
-            name = filename.replace("{ctime}", f"{str(aman.timestamps[0])[:5]}")
-            name = name.replace("{obsid}", aman.obs_info.obs_id if "obs_info" in aman else "obs")
-            name = name.replace("{name}", detection_name(aman, c))
-            plot_detection(aman, c, name)
+            plot_detection(aman, c, detection_filename(filename, aman, c, self.name))

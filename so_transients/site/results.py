@@ -9,9 +9,13 @@ Two ways in, both giving the same table:
   (:mod:`so_transients.preprocess.slot_storage`).
 
 The columns are those of :mod:`so_transients.common.candidates`, with their units (mJy for fluxes,
-rad for positions, s of ctime for times) and descriptions, after ``obs_id``.
-:func:`write_table` adds degrees, arcseconds and UTC beside them (:func:`with_readable_columns`)
-and the provenance block (:mod:`so_transients.site.provenance`).
+rad for positions, s of ctime for times) and descriptions, after ``obs_id``; both readers add
+every angle in degrees (errors in arcseconds) and ``t_peak`` in UTC beside them
+(:func:`with_readable_columns`), so every public table gives positions in degrees.
+:func:`write_table` writes such a table with the provenance block
+(:mod:`so_transients.site.provenance`) in ECSV, FITS or CSV;
+:func:`so_transients.common.tables.read_table` reads it back as written (empty strings as
+``''``, not masked).
 
 :func:`archive_status` says which groups are missing from an archive and why. sotodlib appends
 to ``errlog.txt`` across runs; :func:`so_transients.site.pipeline.run_site_pipeline` moves an earlier
@@ -31,6 +35,8 @@ from sotodlib import core
 from sotodlib.core.metadata import ManifestDb
 
 from so_transients.common import candidates
+from so_transients.common.angles import ARCSEC, DEG
+from so_transients.common.tables import FORMATS, for_writing
 from so_transients.site.provenance import attach, provenance
 from so_transients.site.pipeline import archive_index, check_config, errlog_entries, read_config
 from so_transients.preprocess.slot_storage import unpack
@@ -87,8 +93,17 @@ def archive_entries(index_path):
     return out
 
 
+def _public(table: Table, detected_only) -> Table:
+    """What the readers return: the detections only unless not ``detected_only``, with
+    :func:`with_readable_columns`."""
+    if detected_only:
+        table = table[np.asarray(table["detected"], bool)]
+    return with_readable_columns(table)
+
+
 def archive_table(archive_or_config, detected_only=True) -> Table:
-    """Every group of every observation in an archive, one group at a time, as one table."""
+    """Every group of every observation in an archive, one group at a time, as one table
+    (positions also in degrees: :func:`with_readable_columns`)."""
     tables = []
     for obs_id, tags, filename, dataset in archive_entries(archive_index(archive_or_config)):
         proc = core.AxisManager.load(filename, dataset)
@@ -96,7 +111,7 @@ def archive_table(archive_or_config, detected_only=True) -> Table:
     table = vstack(tables) if tables else _empty_table()
     if not len(table):
         table = _empty_table()
-    return table[np.asarray(table["detected"], bool)] if detected_only else table
+    return _public(table, detected_only)
 
 
 #: Per-group scalars sotodlib's Pipeline saves in every group (NaN without an IIR filter):
@@ -119,14 +134,14 @@ def _get_meta_dropping(context, obs_id, fields):
 
 
 def observation_table(context, obs_id, detected_only=True) -> Table:
-    """The whole observation's candidates through the Context (all groups at once).
+    """The whole observation's candidates through the Context (all groups at once), with
+    the columns of :func:`archive_table` (positions also in degrees).
 
     ``context`` must have the preprocess archive among its metadata (as
     ``sotodlib.preprocess.preprocess_util.get_preprocess_context`` arranges).
     """
     meta = _get_meta_dropping(context, obs_id, PER_GROUP_SCALARS)
-    table = proc_table(meta.preprocess, obs_id)
-    return table[np.asarray(table["detected"], bool)] if detected_only else table
+    return _public(proc_table(meta.preprocess, obs_id), detected_only)
 
 
 def config_of(archive_or_config):
@@ -222,27 +237,52 @@ def utc(ctime) -> np.ndarray:
     return Time(ctime, format="unix").isot if len(ctime) else np.zeros(0, "U23")
 
 
-def with_readable_columns(table: Table) -> Table:
-    """A copy with ``ra_deg``, ``dec_deg`` (deg), ``ra_err_arcsec``, ``dec_err_arcsec``
-    (arcsec) after ``dec_err`` and ``t_peak_utc`` (ISO UTC) after ``t_peak``; the radian and
-    ctime columns are kept as the archive has them."""
-    out = table.copy()
-    derived = [("ra_deg", "ra", "deg", 1.0, "RA in degrees (ra)"),
-               ("dec_deg", "dec", "deg", 1.0, "Dec in degrees (dec)"),
-               ("ra_err_arcsec", "ra_err", "arcsec", 3600.0, "ra_err in arcseconds"),
-               ("dec_err_arcsec", "dec_err", "arcsec", 3600.0, "dec_err in arcseconds")]
-    at = out.colnames.index("dec_err") + 1
-    for i, (name, src, unit, scale, text) in enumerate(derived):
-        values = np.degrees(np.asarray(out[src], np.float64)) * scale
-        out.add_column(Column(values, name=name, unit=unit, description=text), index=at + i)
-    out.add_column(Column(utc(out["t_peak"]), name="t_peak_utc",
-                          description="t_peak as ISO UTC"),
-                   index=out.colnames.index("t_peak") + 1)
+def readable_columns() -> list:
+    """``(name, source, unit, scale, period, description)`` of the columns
+    :func:`with_readable_columns` adds: every angle of the candidate schema (unit rad) in
+    degrees as ``<name>_deg`` (a right ascension wrapped into [0, 360): ``period`` 360), or for
+    an error in arcseconds as ``<name>_arcsec`` (``period`` None)."""
+    out = []
+    for col in candidates.columns(saved=True):
+        if col.unit != "rad":
+            continue
+        if col.name.endswith("_err"):
+            out.append((f"{col.name}_arcsec", col.name, "arcsec", ARCSEC, None,
+                        f"{col.name} in arcseconds"))
+        else:
+            period = 360.0 if col.name.endswith("ra") else None
+            out.append((f"{col.name}_deg", col.name, "deg", DEG, period,
+                        f"{col.name} in degrees{' in [0, 360)' if period else ''}: "
+                        f"{col.description}"))
     return out
 
 
-#: Output formats by file suffix.
-FORMATS = {".ecsv": "ascii.ecsv", ".fits": "fits", ".fit": "fits", ".csv": "ascii.csv"}
+def with_readable_columns(table: Table) -> Table:
+    """A copy with every angle column (rad) also in degrees right after it (``ra_deg`` and
+    ``cluster_ra_deg`` in [0, 360), ``dec_deg``, ``cluster_dec_deg``; errors in arcseconds:
+    ``ra_err_arcsec``, ``dec_err_arcsec``; :func:`readable_columns`) and ``t_peak_utc`` (ISO
+    UTC) after ``t_peak``; the radian and ctime columns are kept as the archive has them.
+    Columns already there are recomputed from their source, so applying it twice changes
+    nothing."""
+    out = table.copy()
+    for name, src, unit, scale, period, text in readable_columns():
+        if src not in out.colnames:
+            continue
+        values = np.asarray(out[src], np.float64) / scale
+        values = np.mod(values, period) if period else values
+        _put(out, Column(values, name=name, unit=unit, description=text), after=src)
+    if "t_peak" in out.colnames:
+        _put(out, Column(utc(out["t_peak"]), name="t_peak_utc",
+                         description="t_peak as ISO UTC"), after="t_peak")
+    return out
+
+
+def _put(table: Table, column: Column, after):
+    """Replace ``column`` in ``table`` or add it right after column ``after``."""
+    if column.name in table.colnames:
+        table.replace_column(column.name, column)
+    else:
+        table.add_column(column, index=table.colnames.index(after) + 1)
 
 
 def output_format(path, overwrite=False) -> str:
@@ -262,14 +302,19 @@ def output_format(path, overwrite=False) -> str:
 def write_table(table: Table, path, config=None, obs_ids=None, overwrite=False) -> Path:
     """Write ECSV, FITS or CSV (chosen by the suffix) with :func:`with_readable_columns` and
     the provenance of ``config`` and ``obs_ids`` (default: the table's) in the metadata.
-    Booleans stay booleans in every format (FITS logical columns). CSV carries the provenance
-    as ``# key: value`` lines: read it with ``Table.read(path, format="ascii.csv",
-    comment="#")`` (pandas: ``comment="#"``)."""
+    Booleans stay booleans in every format (FITS logical columns) and empty strings stay
+    empty (:func:`so_transients.common.tables.for_writing`): read the file back with
+    :func:`so_transients.common.tables.read_table` (any format) or, for ECSV, ``Table.read``.
+    CSV carries the provenance as ``# key: value`` lines: with astropy alone read it with
+    ``Table.read(path, format="ascii.csv", comment="#")`` (pandas: ``comment="#"``,
+    ``keep_default_na=False``)."""
     path = Path(path)
     fmt = output_format(path, overwrite)
     obs_ids = table["obs_id"] if obs_ids is None else obs_ids
     out = attach(with_readable_columns(table), fmt, provenance(config, obs_ids))
+    out, extra = for_writing(out, fmt)
     path.parent.mkdir(parents=True, exist_ok=True)
-    extra = {"comment": "# "} if fmt == "ascii.csv" else {}
+    if fmt == "ascii.csv":
+        extra["comment"] = "# "
     out.write(path, format=fmt, overwrite=overwrite, **extra)
     return path

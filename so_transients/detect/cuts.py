@@ -31,8 +31,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from astropy import units as u
-from astropy.table import Table
 
 from so_transients.common import candidates
 from so_transients.common.angles import ARCMIN, sky_separation
@@ -48,7 +46,7 @@ class CutsConfig:
     min_aspect_ratio: float = 1.5       # detectors must form a line along the scan: focal-plane extent
     #                                     along / across the scan at least this
     time_tolerance: float = 0.02        # s, rms of peak times about the drift model
-    known_sources: str | None = None    # ECSV/CSV file with ra, dec columns
+    known_sources: str | None = None    # ECSV/CSV with ra, dec, or a socat URL (socat:///x.db)
     known_sources_unit: str = "deg"     # unit of ra/dec when the file does not carry one
     mask_radius_arcmin: float | None = None   # known-source mask radius; None: sigma_FWHM of the band
     pol_fraction: float = 0.8           # polarization flag (not a cut) when at least this fraction of the
@@ -69,20 +67,6 @@ class CutsConfig:
     def mask_radius(self):
         """Known-source mask radius in radians, None for each band's sigma_FWHM."""
         return None if self.mask_radius_arcmin is None else self.mask_radius_arcmin * ARCMIN
-
-
-def read_known_sources(path, unit="deg"):
-    """RA, Dec (radians) of the sources in an ECSV or CSV file with ``ra`` and ``dec`` columns."""
-    table = Table.read(path, format="ascii.ecsv" if str(path).endswith(".ecsv") else None)
-    missing = {"ra", "dec"} - set(table.colnames)
-    if missing:
-        raise ValueError(f"known-source list {path} lacks columns {sorted(missing)}")
-    out = []
-    for name in ("ra", "dec"):
-        col = table[name]
-        quantity = col.quantity if col.unit is not None else np.asarray(col) * u.Unit(unit)
-        out.append(quantity.to_value(u.rad))
-    return out[0], out[1]
 
 
 def line_extents(xi, eta, direction):

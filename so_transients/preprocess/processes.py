@@ -33,7 +33,7 @@ from so_transients.common.bands import fwhm_to_sigma, sigma_fwhm_by_band
 from so_transients.common.candidates import CAND_AXIS, HIT_AXIS
 from so_transients.coherent.config import CoherentConfig, find_settings, stacking_of
 from so_transients.coherent.find import coherent_group_candidates
-from so_transients.detect.cuts import CutsConfig, cut_group_candidates, read_known_sources
+from so_transients.detect.cuts import CutsConfig, cut_group_candidates
 from so_transients.detect.find import SCAN_FIELD, find_group_candidates, group_scans
 from so_transients.detect.fit import SPEED_TOLERANCE, FitConfig, FitInputs
 from so_transients.detect.fit_candidates import fit_group_candidates
@@ -44,6 +44,7 @@ from so_transients.detect.matched_filter import (
     EXCLUDED, FilterConfig, matched_filter, response_kernels
 )
 from so_transients.common.step_config import from_yaml
+from so_transients.sources.catalog import read_catalogue
 from so_transients.preprocess.step_fields import GroupName, require
 
 log = logging.getLogger(__name__)
@@ -397,8 +398,11 @@ class TransientCuts(_Preprocess):
     ``max_opposite_ratio`` times stronger on the same detectors within ``sidelobe_window`` s
     (the filter's sidelobes of a strong negative signal); not within ``mask_radius_arcmin`` (default
     sigma_FWHM, from the beam ``transient_filter`` stored) of a source in the
-    ``known_sources`` file (ECSV/CSV with ``ra``, ``dec``). Also sets a polarization flag when
-    the detectors mostly share one polarization orientation.
+    ``known_sources`` list (an ECSV/CSV file with ``ra``, ``dec``, or SO's source catalogue
+    by URL: ``socat:///path/socat.db``, ``sqlite:///...``, ``postgresql://...``; read when
+    the pipeline is built: a missing, empty or malformed file is an error naming it, a list
+    without rows a warning that nothing is masked). Also sets a polarization flag when the
+    detectors mostly share one polarization orientation.
 
     In ``aman.transient_candidates``: the ``transient_cuts`` columns of
     :mod:`so_transients.common.candidates` (``pass_<cut>``, ``aspect_ratio``, ``time_rms``,
@@ -412,7 +416,7 @@ class TransientCuts(_Preprocess):
         calc:
           min_aspect_ratio: 1.5
           time_tolerance: 0.02            # s
-          known_sources: null             # ECSV or CSV with ra, dec
+          known_sources: null             # ECSV/CSV with ra, dec, or a socat URL
           known_sources_unit: deg         # when the file's columns carry no unit
           mask_radius_arcmin: null        # null: sigma_FWHM of the band
           pol_fraction: 0.8
@@ -426,8 +430,14 @@ class TransientCuts(_Preprocess):
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
         self.cfg = from_yaml(CutsConfig, self.calc_cfgs, self.name)
-        self.known = (read_known_sources(self.cfg.known_sources, self.cfg.known_sources_unit)
-                      if self.cfg.known_sources else (np.zeros(0), np.zeros(0)))
+        # read and checked here, when the pipeline is built: a bad file stops every group
+        # before its data are loaded, with one line naming the step, the key and the file
+        self.known = (np.zeros(0), np.zeros(0))
+        if self.cfg.known_sources is not None:
+            known = read_catalogue(self.cfg.known_sources, self.cfg.known_sources_unit,
+                                   f"{self.name}: known_sources",
+                                   f"{self.name}: known_sources_unit")
+            self.known = (known.ra, known.dec)
 
     def calc_and_save(self, aman, proc_aman):
         require(aman, self.name)

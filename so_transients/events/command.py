@@ -13,7 +13,8 @@ Built like a sotodlib site-pipeline element (:func:`get_parser`, :func:`main`; a
    so a second run only does what is missing or changed;
 3. the tables and one figure per event are written to the output folder::
 
-       events.ecsv, events.fits              one row per event
+       events.ecsv, events.fits              one row per event (with the nearest source of
+                                             the config's `catalogue`, when it names one)
        lightcurves.ecsv, lightcurves.fits    one row per crossing and band (lightcurvedb's
                                              FluxMeasurement fields plus the TOD's own)
        lightcurve_fits.ecsv                  eq. 1 per event and band
@@ -44,8 +45,9 @@ from so_transients.site.pipeline import archive_index
 from so_transients.events.config import EventsConfig, load_events_config
 from so_transients.events.group_photometry import GroupJob, run_job, tracks_path
 from so_transients.events.tables import (
-    associate_detections, complete_events, fit_table, lightcurve_table
+    associate_detections, complete_events, crossmatch_events, fit_table, lightcurve_table
 )
+from so_transients.sources.catalog import read_catalogue, read_ephemerides
 
 log = logging.getLogger(__name__)
 
@@ -150,6 +152,7 @@ def build_events(cfg: EventsConfig, progress=True, pool=None, as_completed=None)
     """Run every step; returns the tables written (events, lightcurves, fits, failures)."""
     out = Path(cfg.output)
     out.mkdir(parents=True, exist_ok=True)
+    catalogue = read_catalogue(cfg.catalogue) if cfg.catalogue else None   # before the work
     status = archive_status(cfg.preprocess)
     if not status.complete:
         log.warning("%s\n(the events use the groups in the archive)", status.report())
@@ -166,6 +169,10 @@ def build_events(cfg: EventsConfig, progress=True, pool=None, as_completed=None)
     lightcurves = lightcurve_table(collect_units(statuses), events, detections, labels)
     fits = fit_table(lightcurves, cfg.lightcurve_fit)
     events = complete_events(events, lightcurves, cfg.spectral_min_snr)
+    if catalogue is not None and len(events):
+        ephemerides = read_ephemerides(cfg.catalogue, events["t_first"].min(),
+                                       events["t_last"].max())
+        events = crossmatch_events(events, catalogue, ephemerides, cfg.crossmatch)
     prov = provenance(cfg.preprocess, status.obs_ids)
     tables = dict(events=events, lightcurves=lightcurves, lightcurve_fits=fits,
                   failures=failures)
@@ -209,6 +216,8 @@ def summary(tables: dict, out: Path) -> str:
                      f"bands {row['bands']:<10} wafers {row['wafers']:<12} "
                      f"peak {row['peak_flux']:.0f} +- {row['peak_flux_err']:.0f} mJy "
                      f"({row['peak_band']})  {row['n_crossings']} crossings"
+                     + (f"  {row['cat_class']} {row['cat_source_name']}".rstrip()
+                        if row["cat_class"] else "")
                      + (f"  [{row['note']}]" if row["note"] else ""))
     for row in failed:
         lines.append(f"  FAILED {row['obs_id']} {row['group']}: {row['error']}")

@@ -9,11 +9,14 @@ Either an events YAML::
     photometry: {before_s: 60.0, after_s: 60.0, detect_snr: 5.0, upper_limit_sigma: 3.0}
     lightcurve_fit: {fit_indices: false}
     spectral_min_snr: 3.0                   # crossings used for spectral indices
+    catalogue: socat:///data/socat.db       # cross-match: a socat URL or an ECSV/CSV file
+    crossmatch: {radius_per_jy_arcmin: 30.0, min_radius_arcmin: 1.5, flare_ratio: 5.0}
 
 or the preprocess config itself (every other setting at its default). Defaults live in the
 dataclasses only (:class:`so_transients.events.association.AssociationConfig`,
 :class:`so_transients.detect.forced_fit.PhotometryConfig`,
-:class:`so_transients.events.lightcurve_fit.FlareFitConfig`); the beam fit's window, radius and
+:class:`so_transients.events.lightcurve_fit.FlareFitConfig`,
+:class:`so_transients.sources.crossmatch.CrossmatchConfig`); the beam fit's window, radius and
 error scale, and the scan-speed tolerance, are the site config's own ``transient_fit`` and
 ``transient_find`` settings, never configured again here.
 """
@@ -32,6 +35,7 @@ from so_transients.events.lightcurve_fit import FlareFitConfig
 from so_transients.site.pipeline import archive_index, read_config
 from so_transients.common.step_config import ConfigError, from_yaml
 from so_transients.preprocess.step_settings import step_setting
+from so_transients.sources.crossmatch import CrossmatchConfig
 
 
 @dataclass
@@ -43,6 +47,10 @@ class EventsConfig:
     photometry: PhotometryConfig = field(default_factory=PhotometryConfig)
     lightcurve_fit: FlareFitConfig = field(default_factory=FlareFitConfig)
     spectral_min_snr: float = 3.0
+    catalogue: str | None = None        # known sources the events are cross-matched with: a
+    #                                     socat URL (socat:, socat:///path/socat.db, sqlite:///...,
+    #                                     postgresql://...) or an ECSV/CSV file; None: no cross-match
+    crossmatch: CrossmatchConfig = field(default_factory=CrossmatchConfig)
 
     @property
     def site(self) -> dict:
@@ -67,7 +75,11 @@ class EventsConfig:
 
 
 SECTIONS = {"association": AssociationConfig, "photometry": PhotometryConfig,
-            "lightcurve_fit": FlareFitConfig}
+            "lightcurve_fit": FlareFitConfig, "crossmatch": CrossmatchConfig}
+
+
+def _optional_str(value):
+    return None if value is None else str(value)
 
 
 def load_events_config(path, overrides=None) -> EventsConfig:
@@ -83,7 +95,7 @@ def load_events_config(path, overrides=None) -> EventsConfig:
     if "archive" in raw:                     # a preprocess config
         raw = {"preprocess": str(path)}
     raw.update({k: v for k, v in (overrides or {}).items() if v is not None})
-    known = {"preprocess", "output", "nproc", "spectral_min_snr", *SECTIONS}
+    known = {"preprocess", "output", "nproc", "spectral_min_snr", "catalogue", *SECTIONS}
     unknown = sorted(set(raw) - known)
     if unknown:
         raise ConfigError(f"{path}: unknown key(s) {', '.join(unknown)}; expected some of "
@@ -96,8 +108,8 @@ def load_events_config(path, overrides=None) -> EventsConfig:
     output = Path(raw.get("output") or archive_index(preprocess).parent.parent / "events")
     sections = {k: from_yaml(cls, raw.get(k), f"{path}: {k}") for k, cls in SECTIONS.items()}
     try:
-        scalars = {k: cast(raw[k]) for k, cast in (("nproc", int), ("spectral_min_snr", float))
-                   if k in raw}
+        scalars = {k: cast(raw[k]) for k, cast in (("nproc", int), ("spectral_min_snr", float),
+                                                   ("catalogue", _optional_str)) if k in raw}
         return EventsConfig(preprocess, output, **sections, **scalars)
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"{path}: {exc}") from None

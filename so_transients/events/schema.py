@@ -51,6 +51,19 @@ EVENTS = (
     Column("n_crossings", "int", None, _E, "light-curve points (crossings x bands measured)"),
     Column("n_upper_limits", "int", None, _E, "of which upper limits"),
     Column("note", "str", None, _E, "what could not be measured, '' if nothing"),
+    Column("far", "float", "1 / h", _E, "lowest false-alarm rate of its detections, per "
+                                        "wafer-band-hour (transient_significance; NaN without)"),
+    Column("catalogue", "str", None, _E, "catalogue of the cross-matched source (the events "
+                                         "config's `catalogue`), '' if none matched"),
+    Column("cat_source_id", "int", None, _E, "its id there (socat source_id, or sso_id of a "
+                                             "solar-system object), -1 if none"),
+    Column("cat_source_name", "str", None, _E, "its name there"),
+    Column("cat_separation", "float", "arcmin", _E, "distance from the event's position"),
+    Column("cat_flux_ratio", "float", None, _E, "peak_flux / the catalogued flux (NaN when the "
+                                                "catalogue has none)"),
+    Column("cat_class", "str", None, _E, "catalogued_flare, catalogued, solar_system or new "
+                                         "(so_transients.sources.crossmatch); '' when no "
+                                         "catalogue was searched"),
 )
 
 LIGHTCURVES = (

@@ -4,7 +4,8 @@
 sources); :func:`lightcurve_table` turns the work units' forced photometry into the
 ``lightcurves`` table; :func:`fit_table` fits eq. 1 per event and band; :func:`complete_events`
 adds what the light curves tell about each event (multi-band significance, spectral indices,
-counts, and a note of anything that could not be measured). Columns: :mod:`.schema`.
+counts, and a note of anything that could not be measured); :func:`crossmatch_events` the
+nearest catalogued source. Columns: :mod:`.schema`.
 """
 from __future__ import annotations
 
@@ -23,6 +24,8 @@ from so_transients.events.lightcurve_fit import (
     FLARE_PARAMS, FlareFitConfig, fit_flare, spectral_index
 )
 from so_transients.site.results import utc
+from so_transients.sources.catalog import Catalogue, Ephemerides
+from so_transients.sources.crossmatch import CrossmatchConfig, crossmatch
 from so_transients.events import schema
 
 
@@ -42,6 +45,8 @@ def associate_detections(detections: Table, cfg: AssociationConfig):
     ra, dec = np.asarray(detections["ra"], float), np.asarray(detections["dec"], float)
     sigma = position_sigma(detections["ra_err"], detections["dec_err"])
     t = np.asarray(detections["t_peak"], float)
+    far = (np.asarray(detections["far"], float) if "far" in detections.colnames
+           else np.full(len(t), np.nan))
     labels = link(ra, dec, sigma, t, cfg)
     rows = []
     for k in range(labels.max() + 1 if len(labels) else 0):
@@ -55,7 +60,8 @@ def associate_detections(detections: Table, cfg: AssociationConfig):
                          bands=_joined(detections["bandpass"][mine]),
                          peak_flux=detections["flux"][bright],
                          peak_flux_err=detections["flux_err"][bright],
-                         peak_band=detections["bandpass"][bright], _sigma=e_sig))
+                         peak_band=detections["bandpass"][bright],
+                         far=np.fmin.reduce(far[mine]), _sigma=e_sig))
     if not rows:
         return typed_table(schema.EVENTS, {}), labels
     cols = {k: np.asarray([r[k] for r in rows]) for k in rows[0]}
@@ -167,3 +173,17 @@ def _note(lc: Table) -> str:
                 notes.append(f"{miss} not measured (no {miss} group of these wafers in "
                              "the archive, or it failed)")
     return "; ".join(notes)
+
+
+def crossmatch_events(events: Table, catalogue: Catalogue, ephemerides: Ephemerides | None,
+                      cfg: CrossmatchConfig) -> Table:
+    """``events`` with the cross-match columns (a new table): each event's position and peak
+    flux against ``catalogue``, and against the solar-system objects of ``ephemerides`` at the
+    middle of its detections (:func:`so_transients.sources.crossmatch.crossmatch`)."""
+    cols = {name: list(events[name]) for name in events.colnames}
+    cols.update(crossmatch(np.radians(np.asarray(events["ra"], float)),
+                           np.radians(np.asarray(events["dec"], float)),
+                           np.asarray(events["peak_flux"], float),
+                           0.5 * (np.asarray(events["t_first"]) + np.asarray(events["t_last"])),
+                           catalogue, ephemerides, cfg))
+    return typed_table(schema.EVENTS, cols)

@@ -151,3 +151,69 @@ def test_a_missing_group_is_recorded_and_the_other_band_still_measured(events_ru
     assert len(events) == 2
     assert set(lc["bandpass"]) == {"f090"}
     assert all("f150 not measured" in note for note in events["note"])
+
+
+def test_events_cross_matched_with_a_socat_catalogue(events_run, tmp_path):
+    """The slow flare's position catalogued in socat at 100 mJy makes its event a flare of
+    that source (3 Jy measured: above 5x); an asteroid whose ephemeris passes the fast flare at
+    its time makes that event a solar-system object. The forced photometry is reused."""
+    import shutil
+
+    import astropy.units as u
+    import yaml
+    from astropy.coordinates import ICRS
+    from socat.client.db import Client
+
+    _, root, config, out = events_run
+    slow, fast = truth_of(root)[0][0], truth_of(root)[1][0]
+    db = tmp_path / "socat.db"
+    client = Client(db_url=f"sqlite:///{db}")
+    client.create_source(position=ICRS(ra=slow["ra"] * u.rad, dec=slow["dec"] * u.rad),
+                         name="Catalogued star", flux=100 * u.mJy)
+    sso = client.sso.create_sso(name="Vesta", MPC_id=4)
+    for dt in (-3600, 3600):
+        client.ephem.create_ephem(
+            sso_id=sso.sso_id, MPC_id=4, name="Vesta", time=int(round(fast["t_peak"])) + dt,
+            position=ICRS(ra=fast["ra"] * u.rad, dec=(fast["dec"] + dt / 3600 * 0.2 * np.pi / 180)
+                          * u.rad))
+    copy = tmp_path / "events"
+    shutil.copytree(out, copy)
+    events_yaml = tmp_path / "events.yaml"
+    events_yaml.write_text(yaml.safe_dump({"preprocess": str(config), "output": str(copy),
+                                           "catalogue": f"socat://{db}"}))
+    assert cli_main(["events", str(events_yaml), "-q"]) == 0
+    events = read(copy, "events")
+    flare, moving = event_of(events, truth_of(root)[0])[0], event_of(events, truth_of(root)[1])[0]
+    assert flare["cat_class"] == "catalogued_flare"
+    assert flare["cat_source_name"] == "Catalogued star" and flare["cat_source_id"] == 1
+    assert flare["cat_separation"] < 0.5 and flare["catalogue"] == f"socat://{db}"
+    assert flare["cat_flux_ratio"] == pytest.approx(flare["peak_flux"] / 100.0)
+    assert moving["cat_class"] == "solar_system" and moving["cat_source_name"] == "Vesta"
+    assert events["cat_separation"].unit == "arcmin"
+    # without a catalogue the columns say that none was searched
+    assert list(np.ma.filled(read(out, "events")["cat_class"], "")) == ["", ""]
+
+
+def test_alerts_of_the_injected_flares(events_run, tmp_path):
+    """`so-transients alerts` on the simulated events: one initial alert per flare, tense
+    `injection` (the dataset is a simulation and both events match an injected flare), each
+    valid against the alert schema; a second run adds nothing."""
+    import argparse
+    import json
+
+    import jsonschema
+
+    from so_transients.alerts.command import get_parser, main
+    from so_transients.alerts.records import load_schema
+
+    _, root, _, out = events_run
+    args = get_parser(argparse.ArgumentParser()).parse_args(
+        [str(out), "-o", str(tmp_path / "alerts"), "--voevent"])
+    assert main(args) == 0
+    records = [json.loads(p.read_text()) for p in sorted((tmp_path / "alerts").glob("*.json"))]
+    assert len(records) == 2 and len(list((tmp_path / "alerts").glob("*.xml"))) == 2
+    for record in records:
+        jsonschema.Draft202012Validator(load_schema()).validate(record)
+        assert record["alert_tense"] == "injection" and record["alert_type"] == "initial"
+        assert record["classification"] == "" and record["bands"] == ["f090", "f150"]
+    assert main(args) == 0 and len(list((tmp_path / "alerts").glob("*.json"))) == 2

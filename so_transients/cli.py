@@ -1,21 +1,29 @@
 """The ``so-transients`` command line.
 
-Subcommands:
+User commands:
 
-* ``simulate CONFIG``: simulate SO LAT observations into a sotodlib dataset;
-* ``summary CONTEXT``: describe a dataset as loaded through its context.yaml;
-* ``site-config DATASET``: the transient site preprocess config pointed at a dataset;
+* ``simulate [CONFIG]``: simulate SO LAT observations into a sotodlib dataset (``--list``: the
+  tubes, wafers and bands it knows);
+* ``summary DATASET``: describe a dataset as loaded through its context.yaml;
+* ``site-config DATASET``: the site preprocess config pointed at a dataset (``--mode``
+  production or paper, ``--max-far``, ``--known-sources``);
 * ``run CONFIG``: sotodlib's site pipeline on it, then the catalogue (in time order) and each
-  group's losses; exit status 1, naming each failed group, unless ``--partial``;
-* ``catalog ARCHIVE_OR_CONFIG -o FILE``: every group's detections in one table (ECSV, FITS or
-  CSV by suffix), with which groups are missing from the archive and why;
-* ``schema``: the candidate table's columns (name, step, unit, meaning) as Markdown;
-* ``campaign CONFIG``: an injection-recovery campaign (efficiency, thresholds, false positives);
-* ``campaign-combine RESULTS... -o OUT``: several campaigns' results (e.g. MF and UHF) as one;
+  group's losses;
+* ``catalog CONFIG -o FILE``: every group's detections in one table (ECSV, FITS or CSV by
+  suffix), with which groups are missing from the archive and why;
 * ``events CONFIG``: detections joined into events, forced-photometry light curves, fits
   and figures (:mod:`so_transients.events.command`);
-* ``events-check CONFIG``: the events step measured on simulated flares and noise;
+* ``alerts EVENTS -o OUT``: one alert record per new or updated event (GCN unified-schema
+  JSON, optionally VOEvent 2.0), validated against the package's JSON Schema;
+* ``schema``: the candidate table's columns (name, step, unit, meaning) as Markdown;
 * ``demo``: the main job on built-in default data (``make demo``).
+
+``run``, ``catalog`` and ``events`` exit with status 1, naming each failed group, when any
+group failed, unless ``--partial``; every command exits with status 2 on a refused input.
+
+Validation studies (``so-transients study ...``): ``campaign CONFIG`` (injection-recovery:
+efficiency, thresholds, false positives), ``combine RESULTS... -o OUT`` (several campaigns'
+results as one), ``events-check CONFIG`` (the events step on simulated flares and noise).
 """
 from __future__ import annotations
 
@@ -29,7 +37,17 @@ DEMO_CONFIG = Path(__file__).resolve().parent.parent / "configs" / "sim_demo.yam
 
 
 def _simulate(args):
+    if args.list:
+        return _simulate_list()
     _run_simulation(args)
+
+
+def _simulate_list():
+    from so_transients.sim.focal_plane import lat_layout
+
+    print(f"{'tube':5} {'flavour':8} {'wafers':16} bands")
+    for tube, flavour, wafers, bands in lat_layout():
+        print(f"{tube:5} {flavour:8} {' '.join(wafers):16} {' '.join(bands)}")
 
 
 def _run_simulation(args):
@@ -37,7 +55,12 @@ def _run_simulation(args):
     from so_transients.sim.config import load_config
     from so_transients.sim.simulate import simulate
 
-    config = load_config(args.config, {"seed": args.seed, "output": args.out})
+    config = load_config(args.config, {
+        "seed": args.seed, "output": args.out,
+        "observation": {"duration": getattr(args, "duration", None)},
+        "instrument": {"tubes": getattr(args, "tubes", None),
+                       "wafers": getattr(args, "wafers", None),
+                       "bands": getattr(args, "bands", None)}})
     t0 = time.time()
     result = simulate(config, overwrite=args.overwrite, progress=not args.quiet,
                       workers=getattr(args, "workers", 1))
@@ -47,15 +70,27 @@ def _run_simulation(args):
 
 
 def _summary(args):
+    from so_transients.site.pipeline import dataset_context
     from so_transients.site.summary import dataset_summary
 
-    print(dataset_summary(args.context))
+    path = Path(args.dataset)
+    print(dataset_summary(path if path.suffix in (".yaml", ".yml") else dataset_context(path)))
 
 
 def _site_config(args):
-    from so_transients.site.pipeline import write_site_config
+    from so_transients.site.pipeline import PAPER, PRODUCTION, write_site_config
 
-    print(write_site_config(args.dataset, args.out))
+    if args.max_far is not None and args.mode == "paper":
+        raise ValueError("--max-far needs the production mode (the paper's method has no "
+                         "transient_significance step)")
+    overrides = {}
+    if args.max_far is not None:
+        overrides["transient_significance"] = {"calc": {"max_far": args.max_far}}
+    if args.known_sources is not None:
+        overrides["transient_cuts"] = {"calc": {"known_sources":
+                                                str(Path(args.known_sources).resolve())}}
+    template = PRODUCTION if args.mode == "production" else PAPER
+    print(write_site_config(args.dataset, args.out, template=template, overrides=overrides))
 
 
 def _write_catalog(archive, out, overwrite, max_lost, candidates=False, by_time=False,
@@ -82,42 +117,51 @@ def _write_catalog(archive, out, overwrite, max_lost, candidates=False, by_time=
     return status
 
 
+def _failures(command, status, partial) -> int:
+    """Name each failed or missing group of ``status`` on stderr; the exit status (1 when
+    any, 0 with ``partial``)."""
+    if status.complete:
+        return 0
+    for (obs_id, group), (kind, message) in sorted(status.failed.items()):
+        print(f"so-transients {command}: FAILED {obs_id} {'/'.join(group)}: {kind}: {message}",
+              file=sys.stderr)
+    print(f"so-transients {command}: warning: {len(status.failed)} group(s) failed or "
+          f"missing; the table holds only the others"
+          f"{' (--partial: exit 0)' if partial else ''}", file=sys.stderr)
+    return 0 if partial else 1
+
+
 def _catalog(args):
-    """Exit status 1 with ``--strict`` when a group expected is not in the archive."""
     from so_transients.site.results import output_format
 
     output_format(args.out, args.overwrite)          # refuse before the slow part
-    status = _write_catalog(args.archive, args.out, args.overwrite, args.max_lost,
-                            candidates=args.all, groups=args.groups)
-    if not status.complete:
-        print(f"so-transients catalog: warning: {len(status.failed)} group(s) failed or missing; "
-              "the table holds only the others", file=sys.stderr)
-        return 1 if args.strict else 0
-    return 0
+    status = _write_catalog(args.config, args.out, args.overwrite, args.max_lost,
+                            candidates=args.all, groups=args.groups, by_time=True)
+    return _failures("catalog", status, args.partial)
 
 
 def _run(args):
-    """The site pipeline on a config, then its catalogue and each group's losses; exit status
-    1 when any group failed (each named with its reason) unless ``--partial``."""
+    """The site pipeline on a config, then its catalogue and each group's losses."""
     from so_transients.site.pipeline import archive_index, run_site_pipeline
+
+    from so_transients.site.turnarounds import short_observations
 
     config = Path(args.config)
     out = Path(args.out) if args.out else archive_index(config).parent / "detections.ecsv"
+    short = short_observations(config)
+    if short:                # refused before the site pipeline stops inside sotodlib
+        raise ValueError("\n  ".join(["observations too short for this config:", *short]))
     done = run_site_pipeline(config, nproc=args.nproc, check=False)
     if done.returncode:
         print(f"so-transients run: {config}: the site pipeline stopped (exit "
               f"{done.returncode}):\n{done.stderr[-3000:]}", file=sys.stderr)
         return 1
-    # a catalogue reads in time order
+    # the transient steps' warnings (e.g. a known-source list without sources), once each
+    for line in dict.fromkeys(done.stderr.splitlines()):
+        if "WARNING" in line and "so_transients" in line:
+            print(line, file=sys.stderr)
     status = _write_catalog(config, out, overwrite=True, max_lost=args.max_lost, by_time=True)
-    if status.complete:
-        return 0
-    for (obs_id, group), (kind, message) in sorted(status.failed.items()):
-        print(f"so-transients run: FAILED {obs_id} {'/'.join(group)}: {kind}: {message}",
-              file=sys.stderr)
-    print(f"so-transients run: {len(status.failed)} group(s) failed; the table holds the "
-          f"others{' (--partial: exit 0)' if args.partial else ''}", file=sys.stderr)
-    return 0 if args.partial else 1
+    return _failures("run", status, args.partial)
 
 
 def _schema(args):
@@ -161,7 +205,13 @@ def _campaign(args):
 def _events(args):
     from so_transients.events.command import main
 
-    return main(args.config, args.out, args.nproc, args.strict, args.quiet)
+    return main(args.config, args.out, args.nproc, args.partial, args.quiet)
+
+
+def _alerts(args):
+    from so_transients.alerts.command import main
+
+    return main(args)
 
 
 def _events_check(args):
@@ -211,6 +261,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("config", nargs="?", help="simulation YAML (default: built-in defaults)")
     p.add_argument("-o", "--out", help="output folder (default: the config's `output`)")
     p.add_argument("--seed", type=int, help="override the config's seed")
+    p.add_argument("--duration", type=float, help="seconds per observation")
+    p.add_argument("--tubes", nargs="+", metavar="TUBE", help="LAT tube slots (see --list)")
+    p.add_argument("--wafers", nargs="+", metavar="WAFER",
+                   help="wafer slots of those tubes (default: the config's)")
+    p.add_argument("--bands", nargs="+", metavar="BAND",
+                   help="bands (default: both bands of each tube)")
+    p.add_argument("--list", action="store_true",
+                   help="list the tubes, wafers and bands that can be simulated, and stop")
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
     p.add_argument("--workers", type=int, default=1,
                    help="threads generating detector chunks (same result for any number)")
@@ -218,13 +276,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_simulate)
 
     p = add("summary", "describe a dataset loaded through its context.yaml")
-    p.add_argument("context", help="path to context.yaml")
+    p.add_argument("dataset", help="dataset folder (holds context.yaml), or the context.yaml")
     p.set_defaults(func=_summary)
 
     p = add("site-config", "write the site preprocess config for a dataset")
     p.add_argument("dataset", help="dataset folder (holds context.yaml)")
     p.add_argument("-o", "--out", help="output YAML (default: DATASET/preprocess.yaml)")
+    p.add_argument("--mode", choices=("production", "paper"), default="production",
+                   help="production: coherent search with calibrated false-alarm rates "
+                        "(configs/preprocess_production.yaml, default); paper: the reference "
+                        "paper's method (configs/preprocess_paper.yaml)")
+    p.add_argument("--max-far", type=float, default=None, metavar="PER_HOUR",
+                   help="false-alarm rate cut, per wafer-band-hour (production mode; default "
+                        "the config's 0.005)")
+    p.add_argument("--known-sources", default=None, metavar="FILE",
+                   help="ECSV/CSV of known sources (ra, dec) masked by transient_cuts")
     p.set_defaults(func=_site_config)
+
+    def partial(p):
+        p.add_argument("--partial", action="store_true",
+                       help="exit 0 when some groups failed (each is still named)")
+
+    def max_lost(p):
+        p.add_argument("--max-lost", type=float, default=0.3,
+                       help="warn about groups that could not use more than this fraction of "
+                            "their detectors (default 0.3)")
 
     p = add("run", "run sotodlib's site pipeline on a preprocess config, then write the "
                    "catalogue and each group's losses; exit 1 when a group failed")
@@ -232,35 +308,57 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--out", default=None,
                    help="detections table (default: detections.ecsv beside the archive)")
     p.add_argument("--nproc", type=int, default=1, help="worker processes of the site pipeline")
-    p.add_argument("--partial", action="store_true",
-                   help="exit 0 when some groups failed (their failures are still printed)")
-    p.add_argument("--max-lost", type=float, default=0.3,
-                   help="warn about groups that could not use more than this fraction of their "
-                        "detectors (default 0.3)")
+    partial(p)
+    max_lost(p)
     p.set_defaults(func=_run)
 
-    p = add("catalog", "collect detections from a preprocess archive")
-    p.add_argument("archive", help="archive index (.sqlite) or preprocess config (.yaml)")
+    p = add("catalog", "collect detections from a preprocess archive; exit 1 when a group "
+                       "failed or is missing")
+    p.add_argument("config", help="site preprocess config (.yaml), or its archive index (.sqlite)")
     p.add_argument("-o", "--out", default="detections.ecsv",
                    help="output table: .ecsv, .fits or .csv (default: detections.ecsv)")
     p.add_argument("--all", action="store_true",
                    help="every candidate with its cut reason, not only detections")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
-    p.add_argument("--strict", action="store_true",
-                   help="exit with status 1 when a group is missing from the archive")
     p.add_argument("--groups", default=None, metavar="FILE",
                    help="also write each group's losses (detectors removed and why, samples "
                         "masked) to this table")
-    p.add_argument("--max-lost", type=float, default=0.3,
-                   help="warn about groups that could not use more than this fraction of their "
-                        "detectors (default 0.3)")
+    partial(p)
+    max_lost(p)
     p.set_defaults(func=_catalog)
+
+    p = add("events", "detections joined into events, with forced-photometry light curves, "
+                      "light-curve fits, spectral indices and figures; exit 1 when a group "
+                      "failed")
+    from so_transients.events.command import get_parser as events_parser
+    events_parser(p)
+    p.set_defaults(func=_events)
+
+    p = add("alerts", "alert records of an events folder: GCN unified-schema JSON (and "
+                      "optionally VOEvent 2.0 XML), validated against the package's schema")
+    from so_transients.alerts.command import get_parser as alerts_parser
+    alerts_parser(p)
+    p.set_defaults(func=_alerts)
 
     p = add("schema", "the candidate columns (name, step, unit, meaning)")
     p.set_defaults(func=_schema)
 
-    p = add("campaign", "injection-recovery campaign: efficiencies, detection "
-                        "thresholds, flux/pointing recovery, false positives")
+    p = add("demo", "simulate the default observation, run the production site config "
+                    "and compare detections with the injected flares")
+    p.add_argument("--config", help=f"simulation YAML (default: {DEMO_CONFIG.name})")
+    p.add_argument("-o", "--out", default="data/demo", help="output folder")
+    p.add_argument("--nproc", type=int, default=2, help="site pipeline processes")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_demo)
+
+    study = add("study", "validation studies: campaigns and the events check").add_subparsers(
+        dest="study", required=True, metavar="{campaign,combine,events-check}")
+
+    def add_study(name, help_text):
+        return study.add_parser(name, parents=common, help=help_text)
+
+    p = add_study("campaign", "injection-recovery campaign: efficiency, detection "
+                              "thresholds, flux/pointing recovery, false positives")
     p.add_argument("config", help="campaign YAML (e.g. studies/configs/campaign_quick.yaml)")
     p.add_argument("-o", "--out", help="output folder (default: the config's `output`)")
     p.add_argument("--nproc", type=int, help="worker processes (default: the config's)")
@@ -269,32 +367,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_campaign)
 
-    p = add("campaign-combine", "one set of result tables and figures from several "
-                                "campaigns' results (e.g. an MF and a UHF campaign)")
+    p = add_study("combine", "one set of result tables and figures from several campaigns' "
+                             "results (e.g. an MF and a UHF campaign)")
     p.add_argument("results", nargs="+", help="campaign results folders (<output>/results)")
     p.add_argument("-o", "--out", required=True, help="output folder")
     p.set_defaults(func=_campaign_combine)
 
-    p = add("events", "detections joined into events, with forced-photometry light curves, "
-                      "light-curve fits, spectral indices and figures")
-    from so_transients.events.command import get_parser as events_parser
-    events_parser(p)
-    p.set_defaults(func=_events)
-
-    p = add("events-check", "flares and noise through the site pipeline and the events "
-                            "command, compared with the truth")
+    p = add_study("events-check", "flares and noise through the site pipeline and the events "
+                                  "command, compared with the truth")
     p.add_argument("config", help="events-check YAML (e.g. studies/configs/events_check.yaml)")
     p.add_argument("-o", "--out", help="output folder (default: the config's `output`)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_events_check)
-
-    p = add("demo", "simulate the default observation, run the site pipeline "
-                    "and compare detections with the injected flares")
-    p.add_argument("--config", help=f"simulation YAML (default: {DEMO_CONFIG.name})")
-    p.add_argument("-o", "--out", default="data/demo", help="output folder")
-    p.add_argument("--nproc", type=int, default=2, help="site pipeline processes")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
-    p.set_defaults(func=_demo)
     return parser
 
 
@@ -307,14 +391,16 @@ def configure_logging(verbose):
 
 
 def main(argv=None) -> int:
-    """Exit status: 0 done, 1 done with failures (``catalog --strict``), 2 refused (one line
-    on stderr naming the file and what is wrong)."""
+    """Exit status: 0 done, 1 done with failures (a group of ``run``, ``catalog`` or
+    ``events`` failed, without ``--partial``), 2 refused (one line on stderr naming the file
+    and what is wrong)."""
     args = build_parser().parse_args(argv)
     configure_logging(args.verbose)
     try:
         return args.func(args) or 0
     except (ValueError, OSError, RuntimeError) as exc:
-        print(f"so-transients {args.command}: error: {exc}", file=sys.stderr)
+        command = " ".join(filter(None, (args.command, getattr(args, "study", None))))
+        print(f"so-transients {command}: error: {exc}", file=sys.stderr)
         return 2
 
 

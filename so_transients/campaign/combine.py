@@ -2,7 +2,7 @@
 
 Each campaign writes its input tables (:data:`.report.INPUT_TABLES`) to its results folder;
 this stacks them (a band must come from one campaign only) and derives and writes every table,
-``summary.md`` and the figures again, over all bands (``so-transients campaign-combine``).
+``summary.md`` and the figures again, over all bands (``so-transients study combine``).
 """
 from __future__ import annotations
 

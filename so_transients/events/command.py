@@ -59,8 +59,8 @@ def get_parser(parser=None):
     parser.add_argument("-o", "--out", help="output folder (default: the config's `output`, "
                                             "else <archive folder>/../events)")
     parser.add_argument("--nproc", type=int, help="worker processes (default: the config's)")
-    parser.add_argument("--strict", action="store_true",
-                        help="exit with status 1 when a work unit failed")
+    parser.add_argument("--partial", action="store_true",
+                        help="exit 0 when some groups failed (they are still listed)")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     return parser
 
@@ -237,20 +237,24 @@ def run_events(cfg: EventsConfig, progress=True):
             pool.shutdown()
 
 
-def main(config, out=None, nproc=None, strict=False, quiet=False):
-    """Exit status: 0 done, 1 with ``strict`` when a work unit failed."""
+def main(config, out=None, nproc=None, partial=False, quiet=False):
+    """Exit status: 0 done, 1 when a work unit failed (0 with ``partial``)."""
     cfg = load_events_config(config, {"output": out, "nproc": nproc})
     tables = run_events(cfg, progress=not quiet)
     if tables is None:
         return 0
     print(summary(tables, Path(cfg.output)))
     if len(tables["failures"]):
-        print(f"so-transients events: warning: {len(tables['failures'])} group(s) failed; "
-              "their crossings are missing from the light curves", file=sys.stderr)
-        return 1 if strict else 0
+        for row in tables["failures"]:
+            print(f"so-transients events: FAILED {row['obs_id']} {row['group']}: {row['error']}",
+                  file=sys.stderr)
+        print(f"so-transients events: {len(tables['failures'])} group(s) failed; their "
+              "crossings are missing from the light curves"
+              f"{' (--partial: exit 0)' if partial else ''}", file=sys.stderr)
+        return 0 if partial else 1
     return 0
 
 
 if __name__ == "__main__":
     args = get_parser().parse_args()
-    sys.exit(main(args.config, args.out, args.nproc, args.strict, args.quiet))
+    sys.exit(main(args.config, args.out, args.nproc, args.partial, args.quiet))

@@ -356,12 +356,20 @@ def _section(name, klass, value):
 
 
 def load_config(path=None, overrides: dict | None = None) -> SimConfig:
-    """Read a simulation config (``None``: all defaults) and apply top-level ``overrides``.
-    Every error is a one-line ValueError naming the file, the key and what is expected."""
+    """Read a simulation config (``None``: all defaults) and apply ``overrides`` (a top-level
+    value replaces the config's; a section given as a dict updates the config's section key
+    by key; None values are ignored). Every error is a one-line ValueError naming the file,
+    the key and what is expected."""
     data = {}
     if path is not None:
         data = _read_yaml(path)
-    data.update({k: v for k, v in (overrides or {}).items() if v is not None})
+    for key, value in (overrides or {}).items():
+        if isinstance(value, dict) and isinstance(data.get(key), dict):
+            data[key] = {**data[key], **{k: v for k, v in value.items() if v is not None}}
+        elif isinstance(value, dict):
+            data[key] = {k: v for k, v in value.items() if v is not None}
+        elif value is not None:
+            data[key] = value
     try:
         return SimConfig.from_dict(data)
     except (ValueError, TypeError) as exc:

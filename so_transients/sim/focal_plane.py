@@ -122,6 +122,14 @@ def lat_tubes(flavors=("LAT_MF", "LAT_UHF")):
             if hw["tube_slots"][name]["type"] in flavors]
 
 
+def lat_layout() -> list:
+    """``[(tube_slot, flavour, wafer_slots, bands)]`` of the LAT tubes the simulator knows
+    (sotodlib's nominal hardware), what ``so-transients simulate --list`` prints."""
+    hw = nominal_hardware().data
+    return [(tube, hw["tube_slots"][tube]["type"], list(hw["tube_slots"][tube]["wafer_slots"]),
+             list(FLAVOR_BANDS[hw["tube_slots"][tube]["type"]])) for tube in lat_tubes()]
+
+
 def tube_flavor(tube_slot: str) -> str:
     """``LAT_MF`` or ``LAT_UHF`` (or another hardware type) for a tube slot."""
     hw = nominal_hardware().data

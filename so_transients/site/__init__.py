@@ -5,4 +5,6 @@
 - :mod:`.results`: one astropy table of candidates from an archive or an observation
 - :mod:`.provenance`: where a results table comes from
 - :mod:`.summary`: a plain-text summary of a dataset
+- :mod:`.losses`: what each group lost (detectors removed and why, samples masked)
+- :mod:`.turnarounds`: observations too short for a config's turnaround flags
 """

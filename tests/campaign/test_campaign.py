@@ -30,8 +30,8 @@ QUICK = ROOT / "studies" / "configs" / "campaign_quick.yaml"
 
 def campaign(out, *extra):
     env = dict(os.environ, OMP_NUM_THREADS="1", OMP_WAIT_POLICY="passive")
-    cmd = [sys.executable, "-m", "so_transients.cli", "campaign", str(QUICK), "-o", str(out),
-           "--nproc", "2", "-q", *extra]
+    cmd = [sys.executable, "-m", "so_transients.cli", "study", "campaign", str(QUICK),
+           "-o", str(out), "--nproc", "2", "-q", *extra]
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=1800)
 
 
@@ -372,8 +372,9 @@ def test_an_interrupted_campaign_resumes_and_refuses_another_config(quick, tmp_p
     changed = tmp_path / "changed.yaml"
     changed.write_text(QUICK.read_text().replace("n_flares: 20", "n_flares: 21"))
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    refused = subprocess.run([sys.executable, "-m", "so_transients.cli", "campaign", str(changed),
-                              "-o", str(out), "-q"], env=env, capture_output=True, text=True)
+    refused = subprocess.run([sys.executable, "-m", "so_transients.cli", "study", "campaign",
+                              str(changed), "-o", str(out), "-q"], env=env, capture_output=True,
+                             text=True)
     assert refused.returncode == 2 and "another config" in refused.stderr
 
 
@@ -393,8 +394,8 @@ def test_units_run_on_mpi_ranks_give_the_same_results(quick, tmp_path):
     for path in redo:
         path.unlink()
     env = dict(os.environ, OMP_NUM_THREADS="1", OMP_WAIT_POLICY="passive")
-    cmd = [MPIEXEC, "-n", "3", sys.executable, "-m", "so_transients.cli", "campaign", str(QUICK),
-           "-o", str(out), "--nproc", "2", "-q"]
+    cmd = [MPIEXEC, "-n", "3", sys.executable, "-m", "so_transients.cli", "study", "campaign",
+           str(QUICK), "-o", str(out), "--nproc", "2", "-q"]
     run = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=1800)
     assert run.returncode == 0, run.stderr[-3000:]
     assert all(path.exists() for path in redo)

@@ -126,7 +126,7 @@ def test_site_run_shuts_down_the_pool_sotodlib_leaves_open(monkeypatch):
 
 def test_catalog_of_a_complete_archive(small_run, tmp_path, capsys):
     _, config, _ = small_run
-    assert cli.main(["catalog", str(config), "-o", str(tmp_path / "d.ecsv"), "--strict"]) == 0
+    assert cli.main(["catalog", str(config), "-o", str(tmp_path / "d.ecsv")]) == 0
     out = capsys.readouterr().out
     assert "groups expected 1, in the archive 1, failed 0" in out
 
@@ -154,16 +154,17 @@ def test_a_truncated_tod_file_is_named_by_the_loader(broken_run):
     assert sim.obs_ids[0] in message and "w16_f150" in message and str(tod) in message
 
 
-def test_catalog_names_the_failed_group_and_strict_fails(broken_run, tmp_path, capsys):
+def test_catalog_names_the_failed_group_and_fails_unless_partial(broken_run, tmp_path,
+                                                                    capsys):
     sim, config, tod, _ = broken_run
-    assert cli.main(["catalog", str(config), "-o", str(tmp_path / "d.ecsv")]) == 0
+    assert cli.main(["catalog", str(config), "-o", str(tmp_path / "d.ecsv")]) == 1
     captured = capsys.readouterr()
     assert "groups expected 2, in the archive 1, failed 1" in captured.out
     failed = [line for line in captured.out.splitlines() if "FAILED" in line]
     assert len(failed) == 1 and "w16/f150" in failed[0] and str(tod) in failed[0]
     assert "warning" in captured.err
     index = Path(read_config(config)["archive"]["index"])
-    assert cli.main(["catalog", str(index), "-o", str(tmp_path / "e.ecsv"), "--strict"]) == 1
+    assert cli.main(["catalog", str(index), "-o", str(tmp_path / "e.ecsv"), "--partial"]) == 0
 
 
 def test_a_successful_rerun_leaves_no_stale_error(broken_run, tmp_path, capsys):
@@ -174,7 +175,7 @@ def test_a_successful_rerun_leaves_no_stale_error(broken_run, tmp_path, capsys):
     assert failed_groups(config) == "" and "f150" in (archive / PREVIOUS_ERRLOG).read_text()
     status = archive_status(config)
     assert status.complete and len(status.archived) == 2
-    assert cli.main(["catalog", str(config), "-o", str(tmp_path / "d.ecsv"), "--strict"]) == 0
+    assert cli.main(["catalog", str(config), "-o", str(tmp_path / "d.ecsv")]) == 0
 
 
 def test_catalog_of_a_missing_archive_says_so_and_creates_nothing(tmp_path, capsys):

@@ -1,0 +1,83 @@
+"""The command line's user options: listings, the two site configs and their overrides."""
+import logging
+
+import pytest
+import yaml
+
+from so_transients import cli
+from so_transients.sim.config import load_config
+from so_transients.sim.focal_plane import lat_layout
+
+
+@pytest.fixture(autouse=True)
+def sotodlib_logger_restored():
+    """cli.main stops sotodlib's logger propagating: undo it for the tests that follow."""
+    yield
+    logging.getLogger("sotodlib").propagate = True
+
+
+@pytest.fixture
+def dataset(tmp_path):
+    """A folder that passes for a dataset (site-config reads nothing but its context.yaml's
+    path)."""
+    (tmp_path / "context.yaml").write_text("imports: [so_transients]\n")
+    return tmp_path
+
+
+def steps(path):
+    return {s["name"]: s for s in yaml.safe_load(path.read_text())["process_pipe"]}
+
+
+def test_simulate_list_prints_every_tube_with_its_wafers_and_bands(capsys):
+    assert cli.main(["simulate", "--list"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert len(out) == 1 + len(lat_layout())
+    c1 = next(line.split() for line in out if line.startswith("c1"))
+    assert c1 == ["c1", "LAT_UHF", "w00", "w01", "w02", "f220", "f280"]
+
+
+def test_simulate_options_update_sections_key_by_key():
+    cfg = load_config(None, {"observation": {"duration": 120.0, "start": None},
+                             "instrument": {"tubes": ["c1"], "wafers": ["w01"],
+                                            "bands": None}})
+    default = load_config(None)
+    assert cfg.observation.duration == 120.0
+    assert cfg.observation.start == default.observation.start
+    assert cfg.instrument.tubes == ["c1"] and cfg.instrument.wafers == ["w01"]
+    assert cfg.instrument.bands is None
+
+
+def test_site_config_writes_the_production_search_by_default(dataset):
+    assert cli.main(["site-config", str(dataset)]) == 0
+    pipe = steps(dataset / "preprocess.yaml")
+    assert pipe["transient_find"]["calc"]["mode"] == "coherent"
+    assert pipe["transient_significance"]["calc"]["max_far"] == 0.005
+    assert {"jumps", "fourier_filter", "noise", "pca_filter"} <= set(pipe)
+
+
+def test_site_config_paper_mode_and_overrides(dataset, tmp_path):
+    known = tmp_path / "known.ecsv"
+    assert cli.main(["site-config", str(dataset), "--mode", "paper", "--known-sources",
+                     str(known), "-o", str(tmp_path / "paper.yaml")]) == 0
+    pipe = steps(tmp_path / "paper.yaml")
+    assert pipe["transient_find"]["calc"]["mode"] == "paper"
+    assert "transient_significance" not in pipe
+    assert pipe["transient_cuts"]["calc"]["known_sources"] == str(known.resolve())
+    assert cli.main(["site-config", str(dataset), "--max-far", "0.02"]) == 0
+    assert steps(dataset / "preprocess.yaml")["transient_significance"]["calc"]["max_far"] \
+        == 0.02
+
+
+def test_max_far_in_paper_mode_is_refused(dataset, capsys):
+    assert cli.main(["site-config", str(dataset), "--mode", "paper", "--max-far", "0.01"]) == 2
+    assert "--max-far" in capsys.readouterr().err
+
+
+def test_study_commands_sit_apart_from_the_user_commands(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["campaign", "x.yaml"])
+    with pytest.raises(SystemExit) as done:
+        cli.main(["study", "--help"])
+    assert done.value.code == 0
+    out = capsys.readouterr().out
+    assert "campaign" in out and "events-check" in out and "combine" in out

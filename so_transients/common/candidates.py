@@ -121,8 +121,12 @@ SCHEMA = (
     Column("pass_peak_ratio", "bool", None, _T, "snr_max <= max_peak_ratio x snr_fit (a "
                                                  "glitch residue's one detector is far brighter "
                                                  "than the fitted source could make it)"),
+    Column("duplicate_of", "int", None, _T, "cand_id of the detection of the same crossing "
+                                            "(scan and band, fitted within a beam FWHM) with "
+                                            "the higher S/N that this significant fit "
+                                            "repeats; -1: none"),
     Column("detected", "bool", None, _T, "fit_ok, snr_fit >= min_snr, pass_peak_ratio, "
-                                          "pass_far and not moving"),
+                                          "pass_far, not moving and not a duplicate"),
 )
 BY_NAME = {c.name: c for c in SCHEMA}
 

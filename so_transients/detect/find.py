@@ -4,7 +4,11 @@ Paper, section 4.1: samples with S/N >= 3 from all detectors of a group (wafer x
 at the scan turnarounds; within each scan their RA/Dec (computed for these samples only) are
 clustered with DBSCAN at the beam scale ``sigma_FWHM = FWHM / (2 sqrt(ln 2))``, and clusters of
 more than 10 samples become candidates. Each candidate is one crossing of the array by a
-possible source.
+possible source, or part of one: where the detectors' tracks lie farther apart across the
+scan than sigma_FWHM (the UHF bands; f150 barely), a source between two tracks gives a
+cluster on each side. Both are kept here, as the paper's method makes them; ``transient_fit``
+then reports one detection per crossing
+(:func:`so_transients.detect.fit_candidates.crossing_duplicates`).
 
 Everything here works on plain arrays; the sky positions come from a callable so the caller
 decides how pointing is computed (see :func:`so_transients.common.pointing.radec_of_samples`).

@@ -1,14 +1,17 @@
 """A group's candidates fitted (``transient_fit``): each one's beam fit
 (:func:`so_transients.detect.fit.fit_at`), or for a sweep stack the fixed-position fit of its
-crossings (:func:`so_transients.detect.forced_fit.stack_fit`), then the detection decision:
-``A0/sigma_A >= min_snr``, not moving, a brightest detector in proportion, and ``pass_far``.
+crossings (:func:`so_transients.detect.forced_fit.stack_fit`), then the detection decision
+(:func:`detection_decision`): ``A0/sigma_A >= min_snr``, not moving, a brightest detector in
+proportion, ``pass_far``, and not a repeat of a detection of the same crossing
+(:func:`crossing_duplicates`).
 """
 from __future__ import annotations
 
 import numpy as np
 
 from so_transients.common import candidates
-from so_transients.common.angles import ARCMIN, ARCSEC
+from so_transients.common.angles import ARCMIN, ARCSEC, sky_separation
+from so_transients.common.bands import fwhm_to_sigma
 from so_transients.detect.fit import FitConfig, FitInputs, fit_at, measure_error_scale
 from so_transients.detect.forced_fit import stack_fit
 from so_transients.detect.motion import flag_moving
@@ -37,12 +40,79 @@ def fit_group_candidates(data: FitInputs, cands, det_bands, cfg: FitConfig):
     fitted = out["fit_ok"]
     out["ra"] = np.where(fitted, out["ra"], cands["cluster_ra"])
     out["dec"] = np.where(fitted, out["dec"], cands["cluster_dec"])
-    significant = fitted & (np.nan_to_num(out["snr_fit"]) >= cfg.min_snr)
-    out["moving"], out["motion_rate"] = _motion(cands, out, significant, cfg)
-    out["pass_peak_ratio"] = peak_ratio_ok(cands["snr_max"], out["snr_fit"], cfg.max_peak_ratio)
-    pass_far = np.asarray(cands.get("pass_far", np.ones(n, bool)), bool)
-    out["detected"] = significant & ~out["moving"] & out["pass_peak_ratio"] & pass_far
+    fwhm = {b: float(np.median(data.beam_sigma[det_bands == b])) / fwhm_to_sigma(1.0)
+            for b in np.unique(cands["bandpass"])}
+    out.update(detection_decision(cands, out, cfg, fwhm))
     return candidates.check(out, "transient_fit")
+
+
+def detection_decision(cands, fits, cfg: FitConfig, fwhm_by_band):
+    """``moving``, ``motion_rate``, ``pass_peak_ratio``, ``duplicate_of`` and ``detected`` of
+    a group's fitted candidates (``fits``: their ``fit_ok``, ``snr_fit``, ``ra``, ``dec``,
+    ``ra_err``, ``dec_err``; ``fwhm_by_band``: each band's beam FWHM, radians).
+
+    Significant fits (``fit_ok``, ``snr_fit >= min_snr``) of one crossing are joined first
+    (:func:`crossing_duplicates`), keeping the one that passes ``pass_peak_ratio`` and
+    ``pass_far`` with the highest ``snr_fit``: the others are not detected, and their
+    ``duplicate_of`` names its ``cand_id``. The motion test then sees one detection per
+    crossing (a duplicate takes its ``moving`` and ``motion_rate``)."""
+    n = len(cands["bandpass"])
+    significant = fits["fit_ok"] & (np.nan_to_num(fits["snr_fit"]) >= cfg.min_snr)
+    out = {"pass_peak_ratio": peak_ratio_ok(cands["snr_max"], fits["snr_fit"],
+                                            cfg.max_peak_ratio)}
+    pass_far = np.asarray(cands.get("pass_far", np.ones(n, bool)), bool)
+    single = np.asarray(cands.get("n_crossings", np.ones(n, int))) == 1
+    sel = np.flatnonzero(significant & single & (np.asarray(cands["scan"]) >= 0))
+    preference = np.lexsort((-np.nan_to_num(fits["snr_fit"][sel], nan=-np.inf),
+                             ~(out["pass_peak_ratio"] & pass_far)[sel]))
+    repeats = crossing_duplicates(cands["scan"][sel], cands["bandpass"][sel], fits["ra"][sel],
+                                  fits["dec"][sel], preference,
+                                  np.array([fwhm_by_band[b] for b in cands["bandpass"][sel]]))
+    kept = np.full(n, -1)                   # the detection a duplicate repeats
+    kept[sel[repeats >= 0]] = sel[repeats[repeats >= 0]]
+    duplicate = kept >= 0
+    moving, rate = _motion(cands, fits, significant & ~duplicate, cfg)
+    moving[duplicate], rate[duplicate] = moving[kept[duplicate]], rate[kept[duplicate]]
+    cand_id = np.asarray(cands.get("cand_id", np.arange(n)))
+    out.update(moving=moving, motion_rate=rate,
+               duplicate_of=np.where(duplicate, cand_id[kept], -1),
+               detected=significant & ~moving & out["pass_peak_ratio"] & pass_far & ~duplicate)
+    return out
+
+
+def crossing_duplicates(scan, bands, ra, dec, preference, radius):
+    """Index of the detection each detection repeats, -1 for those it keeps.
+
+    Detections of one scan and band whose positions (``ra``, ``dec``, radians) lie within
+    ``radius`` (radians, per detection: the band's beam FWHM) are one crossing: within one
+    scan the array passes over a sky position once, so the scan is the crossing's time
+    window. ``preference``: the detections' indices, the one to keep first. Each detection
+    not yet assigned, in that order, is kept and claims the unassigned ones of its scan and
+    band within its ``radius`` (as non-maximum suppression does).
+
+    Why: the paper clusters the S/N >= 3 samples of a scan with DBSCAN at sigma_FWHM
+    (:mod:`so_transients.detect.find`), and that stays as it is. Each detector sees a
+    crossing along its own track, a line along the scan; neighbouring tracks lie up to 0.86'
+    apart across the scan (the simulated wafers, 1.57' pitch), depending on the angle
+    between scan and array. Where a gap exceeds sigma_FWHM (0.60' at f220, 0.54' at f280;
+    0.84' at f150, barely; never f090's 1.32'), a source passing between two tracks gives
+    one cluster on each side: two candidates, whose beam fits use the same samples and
+    converge to one position (within arcseconds; such gaps split 3 of 6 f220 crossings on
+    UHF wafer w01 at elevation 60). Sources more than a beam apart stay separate, as do
+    crossings in different scans.
+    """
+    scan, bands = np.asarray(scan), np.asarray(bands)
+    ra, dec, radius = np.asarray(ra, float), np.asarray(dec, float), np.asarray(radius, float)
+    repeats = np.full(len(scan), -1)
+    done = np.zeros(len(scan), bool)
+    for i in preference:
+        if done[i]:
+            continue
+        done[i] = True
+        same = ~done & (scan == scan[i]) & (bands == bands[i]) & (
+            sky_separation(ra, dec, ra[i], dec[i]) <= radius[i])
+        repeats[same], done[same] = i, True
+    return repeats
 
 
 def _fit_one(data: FitInputs, cands, c, det_bands, scales, cfg: FitConfig):

@@ -594,8 +594,10 @@ class TransientFit(_Preprocess):
     amplitude timestream with a bounded Levenberg-Marquardt fit (see :mod:`so_transients.detect.fit`);
     a candidate is a detection when ``A0 / sigma_A >= min_snr`` and it is not a moving source
     (its group's significant fits at that place drift from scan to scan faster than
-    ``min_motion_arcmin_per_min``: flagged ``moving``, see :mod:`so_transients.detect.motion`).
-    Errors are scaled by
+    ``min_motion_arcmin_per_min``: flagged ``moving``, see :mod:`so_transients.detect.motion`)
+    nor a repeat of a detection of the same crossing (fits of one scan and band within a beam
+    FWHM: ``duplicate_of`` names the one kept, see
+    :func:`so_transients.detect.fit_candidates.crossing_duplicates`). Errors are scaled by
     ``error_scale``, the measured spread of the same fit at ``n_null`` random positions away
     from candidates (residual atmosphere is correlated between neighbouring detectors, so the
     naive covariance is too small), unless a fixed ``error_scale`` is configured (injection

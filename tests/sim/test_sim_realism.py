@@ -66,7 +66,7 @@ def row_of(names, det_id):
 
 def test_every_option_off_is_the_ideal_simulation(tmp_path):
     """Defaults leave data unchanged: naming every new option, switched off, gives bit-identical
-    TOD and metadata and writes no new truth or metadata file."""
+    TOD and metadata and writes no new truth file."""
     cfg = dict(instrument={"bands": ["f090"]}, flares={"n": 2}, point_sources={"n": 1},
                glitches={"enabled": True, "rate_per_hour": 500})
     ideal = sim(tmp_path / "ideal", seed=7, base={}, **cfg)
@@ -76,9 +76,11 @@ def test_every_option_off_is_the_ideal_simulation(tmp_path):
         folder = result.context.parent
         assert sorted(p.name for p in (folder / "truth").iterdir()) == [
             "flares.ecsv", "glitches.ecsv", "point_sources.ecsv"]
-        assert not (folder / "metadata/det_cal.sqlite").exists()
-    fp = [core.Context(str(r.context)).get_meta(OBS).focal_plane for r in (ideal, off)]
+    meta = [core.Context(str(r.context)).get_meta(OBS) for r in (ideal, off)]
+    fp = [m.focal_plane for m in meta]
     assert np.array_equal(fp[0].xi, fp[1].xi) and np.array_equal(fp[0].eta, fp[1].eta)
+    # det_cal as real data has it, with instantaneous detectors (tau_eff 0)
+    assert all(np.all(np.asarray(m.det_cal.tau_eff) == 0) for m in meta)
     assert SimConfig.from_dict(EVERY_OPTION_OFF).to_dict() == SimConfig().to_dict()
 
 
@@ -153,9 +155,10 @@ def test_calibration_scatter_scales_the_sky(tmp_path):
     assert abs(seen[i].max() / 50000.0 / gain[i] - 1) < 1e-3
     # rms of 860 Gaussian draws: relative error 1/sqrt(2 x 860) = 2.4 %; 4 sigma = 10 %
     assert abs(np.std(gain - 1) / 0.03 - 1) < 0.10
-    # the metadata still state the nominal focal plane and no calibration
+    # the metadata still state the nominal focal plane and no calibration: det_cal holds
+    # the (zero) time constants only
     meta = core.Context(str(scattered.context)).get_meta(OBS)
-    assert "det_cal" not in meta
+    assert set(meta.det_cal._fields) == {"tau_eff"}
 
 
 def _emg(t, amp, t0, sigma, tau):

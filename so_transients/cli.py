@@ -13,6 +13,8 @@ User commands:
   suffix), with which groups are missing from the archive and why;
 * ``events CONFIG``: detections joined into events, forced-photometry light curves, fits
   and figures (:mod:`so_transients.events.command`);
+* ``db ingest|query|lightcurve|migrate``: the events database across observations (SQLite
+  by default, PostgreSQL by URL), idempotent ingest, association with what is stored;
 * ``alerts EVENTS -o OUT``: one alert record per new or updated event (GCN unified-schema
   JSON, optionally VOEvent 2.0), validated against the package's JSON Schema;
 * ``schema``: the candidate table's columns (name, step, unit, meaning) as Markdown;
@@ -208,6 +210,12 @@ def _events(args):
     return main(args.config, args.out, args.nproc, args.partial, args.quiet)
 
 
+def _db(args):
+    from so_transients.database.command import main
+
+    return main(args)
+
+
 def _alerts(args):
     from so_transients.alerts.command import main
 
@@ -333,6 +341,12 @@ def build_parser() -> argparse.ArgumentParser:
     from so_transients.events.command import get_parser as events_parser
     events_parser(p)
     p.set_defaults(func=_events)
+
+    p = add("db", "the events database across observations (SQLite or PostgreSQL): ingest "
+                  "an events folder, query events, a source's light curve")
+    from so_transients.database.command import get_parser as db_parser
+    db_parser(p)
+    p.set_defaults(func=_db)
 
     p = add("alerts", "alert records of an events folder: GCN unified-schema JSON (and "
                       "optionally VOEvent 2.0 XML), validated against the package's schema")

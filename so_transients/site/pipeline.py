@@ -1,10 +1,14 @@
 """Running sotodlib's site preprocess pipeline on a dataset with the transient steps.
 
-sotodlib resolves the preprocess config's paths (``context_file``, ``archive.index``,
-``archive.policy.filename``, ``plot_dir``) against the working directory, so the config written
-into a dataset holds absolute paths of that dataset at the time it is written: a copied or moved
-dataset needs ``so-transients site-config`` again (``make demo`` regenerates it), and
-:func:`check_config` refuses a config inside one dataset that points at another.
+The config :func:`write_site_config` writes names its paths (``context_file``,
+``archive.index``, ``archive.policy.filename``, ``plot_dir``) relative to the config's own
+folder, so that a copied or moved dataset reads and writes its own files. sotodlib resolves
+them against the working directory: :func:`run_site_pipeline` (``so-transients run``) runs
+the site pipeline from the config's folder, and :func:`read_config` gives every path
+resolved against it. Run sotodlib's ``preprocess_tod`` yourself from that folder
+(``cd DATASET``), and give ``get_preprocess_context`` the dict :func:`read_config` returns
+(:func:`preprocess_context`). :func:`check_config` still refuses a config inside one dataset
+whose absolute paths point at another.
 """
 from __future__ import annotations
 
@@ -35,8 +39,25 @@ def archive_index(archive_or_config) -> Path:
     return path
 
 
+#: The paths of a preprocess config, as key paths into it.
+PATH_KEYS = (("context_file",), ("plot_dir",), ("archive", "index"),
+             ("archive", "policy", "filename"))
+
+
+def _map_paths(cfg, convert):
+    """``cfg`` with each path of :data:`PATH_KEYS` it holds replaced by ``convert(path)``."""
+    for keys in PATH_KEYS:
+        node = cfg
+        for key in keys[:-1]:
+            node = node.get(key) if isinstance(node, dict) else None
+        if isinstance(node, dict) and isinstance(node.get(keys[-1]), str):
+            node[keys[-1]] = convert(node[keys[-1]])
+    return cfg
+
+
 def read_config(config_path) -> dict:
-    """A preprocess config as a dict; errors name the file."""
+    """A preprocess config as a dict, each relative path (:data:`PATH_KEYS`) resolved against
+    the config's folder; errors name the file."""
     try:
         with open(config_path) as f:
             cfg = yaml.safe_load(f)
@@ -45,7 +66,16 @@ def read_config(config_path) -> dict:
     if not isinstance(cfg, dict) or "archive" not in cfg or "context_file" not in cfg:
         raise ValueError(f"{config_path}: not a preprocess config (needs context_file and "
                          "archive)")
-    return cfg
+    folder = Path(config_path).resolve().parent
+    return _map_paths(cfg, lambda p: str(folder / p) if not os.path.isabs(p) else p)
+
+
+def preprocess_context(config_path):
+    """``(configs, context)`` of sotodlib's ``get_preprocess_context`` for a config whose
+    paths are relative to its folder (any working directory)."""
+    from sotodlib.preprocess import preprocess_util as pp_util
+
+    return pp_util.get_preprocess_context(read_config(config_path))
 
 
 def dataset_context(dataset) -> Path:
@@ -101,10 +131,13 @@ def apply_overrides(process_pipe, overrides=None):
 
 def write_site_config(dataset, path=None, template=TEMPLATE, overrides=None,
                       results=None) -> Path:
-    """Write :func:`site_config` to ``path`` (default ``<dataset>/preprocess.yaml``)."""
+    """Write :func:`site_config` to ``path`` (default ``<dataset>/preprocess.yaml``), its
+    paths relative to the config's folder (a copied dataset reads its own files)."""
     cfg = site_config(dataset, template, overrides, results)
     path = Path(path or Path(dataset) / "preprocess.yaml")
     path.parent.mkdir(parents=True, exist_ok=True)
+    folder = path.resolve().parent
+    _map_paths(cfg, lambda p: os.path.relpath(p, folder))
     with open(path, "w") as f:
         yaml.safe_dump(cfg, f, sort_keys=False)
     return path
@@ -146,11 +179,13 @@ def run_site_pipeline(config_path, nproc=1, extra_args=(), check=True):
     errlog = archive_dir / ERRLOG
     if errlog.exists():
         errlog.replace(archive_dir / PREVIOUS_ERRLOG)
+    config_path = Path(config_path).resolve()
     with tempfile.TemporaryDirectory(prefix="so_transients_pb_") as pb_dir:
         cmd = [sys.executable, "-m", "so_transients.site.run", str(config_path),
                "--nproc", str(nproc), "--verbosity", "1", "--pb-path", pb_dir, *extra_args]
-        try:
-            return subprocess.run(cmd, env=env, check=check, capture_output=True, text=True)
+        try:       # from the config's folder: sotodlib resolves its paths against it
+            return subprocess.run(cmd, env=env, check=check, capture_output=True, text=True,
+                                  cwd=config_path.parent)
         finally:
             remove_empty_leftovers(config_path)
 

@@ -16,7 +16,7 @@ import so_transients
 from so_transients import cli
 from so_transients.demo import report
 from so_transients.site.provenance import file_digest
-from so_transients.site.results import archive_status
+from so_transients.site.results import archive_status, archive_table
 from so_transients.sim.focal_plane import wafer_detectors
 from so_transients.sim.sources import PointingContext
 from so_transients.site.pipeline import (
@@ -77,10 +77,35 @@ def test_copy_of_a_dataset_reads_the_copy_once_the_original_is_gone(small_run, t
         assert Path(path).is_relative_to(second.resolve())
 
 
-def test_a_copied_site_config_pointing_at_the_original_is_refused(small_run, tmp_path):
+def test_a_copied_dataset_reads_its_own_archive_through_its_own_config(small_run, tmp_path):
+    """The site config written into a dataset names its paths relative to itself: a copy of
+    the whole dataset (archive included) reads and writes the copy, from any folder."""
+    sim, config, _ = small_run
+    copy = tmp_path / "copy"
+    shutil.copytree(sim.context.parent, copy)
+    text = yaml.safe_load((copy / "preprocess.yaml").read_text())
+    assert text["context_file"] == "context.yaml"
+    cfg = read_config(copy / "preprocess.yaml")
+    for path in (cfg["context_file"], cfg["archive"]["index"], cfg["plot_dir"],
+                 cfg["archive"]["policy"]["filename"]):
+        assert Path(path).is_relative_to(copy.resolve())
+    original = archive_table(config)
+    assert len(original)
+    shutil.rmtree(sim.context.parent / "preprocess")          # the original's archive gone
+    try:
+        copied = archive_table(copy / "preprocess.yaml")
+        assert list(copied["t_peak"]) == list(original["t_peak"])
+    finally:
+        shutil.copytree(copy / "preprocess", sim.context.parent / "preprocess")
+
+
+def test_a_copied_site_config_with_absolute_paths_to_the_original_is_refused(small_run,
+                                                                             tmp_path):
     sim, _, _ = small_run
     copy = tmp_path / "copy"
     shutil.copytree(sim.context.parent, copy)
+    absolute = read_config(sim.context.parent / "preprocess.yaml")   # the original's paths
+    (copy / "preprocess.yaml").write_text(yaml.safe_dump(absolute))
     with pytest.raises(ValueError, match="site-config"):
         check_config(copy / "preprocess.yaml")
     with pytest.raises(ValueError, match="site-config"):

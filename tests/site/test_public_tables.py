@@ -2,13 +2,13 @@
 catalogue reads back as written: empty ``cut_reason`` as '', booleans as booleans."""
 import numpy as np
 import pytest
-from sotodlib.preprocess import preprocess_util as pp_util
 
 from so_transients.common import candidates
 from so_transients.common.angles import ARCSEC, DEG
 from so_transients.common.tables import read_table
-from so_transients.site.pipeline import PAPER, failed_groups, run_site_pipeline, \
-    write_site_config
+from so_transients.site.pipeline import (
+    PAPER, failed_groups, preprocess_context, run_site_pipeline, write_site_config
+)
 from so_transients.site.results import (archive_table, observation_table, readable_columns,
                                         with_readable_columns, write_table)
 
@@ -79,7 +79,7 @@ def test_both_readers_give_the_same_columns_in_degrees(tmp_path, two_flare_datas
                                template=PAPER, results=tmp_path / "preprocess")
     run_site_pipeline(config)
     assert failed_groups(config) == ""
-    _, ctx = pp_util.get_preprocess_context(str(config))
+    _, ctx = preprocess_context(config)
     whole = observation_table(ctx, two_flare_dataset.obs_ids[0], detected_only=False)
     per_group = archive_table(config, detected_only=False)
     assert whole.colnames == per_group.colnames and len(whole) == len(per_group) > 0

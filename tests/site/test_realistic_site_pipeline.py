@@ -6,14 +6,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from sotodlib.preprocess import preprocess_util as pp_util
 
 from so_transients.common.angles import ARCSEC
 from so_transients.site.results import archive_table, observation_table
 from so_transients.sim.config import load_config
 from so_transients.sim.simulate import simulate
 from so_transients.site.pipeline import (
-    PRODUCTION, failed_groups, run_site_pipeline, write_site_config
+    PRODUCTION, failed_groups, preprocess_context, run_site_pipeline, write_site_config
 )
 
 from tests.site.test_site_pipeline import (
@@ -95,7 +94,7 @@ def test_a_whole_observation_of_two_bands_loads_as_one_table(realistic_run):
     """Every field the transient steps save survives sotodlib's concatenation of the f090 and
     f150 groups (a per-group scalar would not)."""
     sim, config = realistic_run
-    _, ctx = pp_util.get_preprocess_context(str(config))
+    _, ctx = preprocess_context(config)
     whole = observation_table(ctx, sim.obs_ids[0], detected_only=False)
     per_group = archive_table(config, detected_only=False)
     assert set(whole["bandpass"]) == {"f090", "f150"}

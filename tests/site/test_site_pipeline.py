@@ -8,12 +8,13 @@ import pytest
 from astropy.table import Table
 from scipy.stats import norm
 from sotodlib import core
-from sotodlib.preprocess import preprocess_util as pp_util
 
 from so_transients.campaign.matching import compare_with_truth, match
 from so_transients.common.angles import ARCMIN, ARCSEC
 from so_transients.site.results import archive_entries, archive_table, observation_table
-from so_transients.site.pipeline import PAPER, failed_groups, run_site_pipeline, write_site_config
+from so_transients.site.pipeline import (
+    PAPER, failed_groups, preprocess_context, run_site_pipeline, write_site_config
+)
 
 from tests.conftest import run_sim
 
@@ -127,7 +128,7 @@ def test_glitch_step_flags_the_bright_flare_but_does_not_lose_it(flare_run):
     sim, config = flare_run
     ctx = core.Context(str(sim.context))
     aman = ctx.get_obs(sim.obs_ids[0], dets={"wafer_slot": "w16", "bandpass": "f090"})
-    _, ctx_pp = pp_util.get_preprocess_context(str(config))
+    _, ctx_pp = preprocess_context(config)
     meta = ctx_pp.get_meta(sim.obs_ids[0], dets={"wafer_slot": "w16", "bandpass": "f090"})
     det = list(aman.det_info.det_id).index("w16_f090_p215A")
     k = np.searchsorted(aman.timestamps, aman.timestamps[0] + 150.0)
@@ -153,7 +154,7 @@ def test_glitches_make_no_detections(flare_run):
 
 def test_whole_observation_load_matches_per_group_archive(flare_run):
     sim, config = flare_run
-    _, ctx = pp_util.get_preprocess_context(str(config))
+    _, ctx = preprocess_context(config)
     whole = observation_table(ctx, sim.obs_ids[0], detected_only=False)
     per_group = archive_table(config, detected_only=False)
     assert len(whole) == len(per_group) > 0

@@ -8,10 +8,15 @@ export OMP_WAIT_POLICY ?= passive
 
 .PHONY: demo test test-fast lint docs bench clean install
 
+# -qq: pip's errors only (its warnings about index locations this machine's pip
+# configuration names but lacks are noise here)
+PIP    := $(PY) -m pip install -qq --disable-pip-version-check
+
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
-	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test,docs]'
+	@echo "installing the environment in $(VENV) (first use only)"
+	@$(PIP) --upgrade pip
+	@$(PIP) -e '.[test,docs]'
 	@touch $(STAMP)
 
 install: $(STAMP)

@@ -44,7 +44,7 @@ class CoherentConfig:
         share("transient_find", max_single_share=self.max_single_share,
               max_instant_share=self.max_instant_share, stack_max_share=self.stack_max_share)
         if self.chi2_bins == 1 or self.chi2_bins < 0 or not 0 < self.chi2_tail < 1 \
-                or self.chi2_mismatch < 0:
+                or not self.chi2_mismatch >= 0:
             raise ConfigError(f"transient_find: chi2_bins must be 0 (no test) or 2 or more, "
                               f"chi2_tail in (0, 1) and chi2_mismatch 0 or more; got "
                               f"{self.chi2_bins}, {self.chi2_tail}, {self.chi2_mismatch}")

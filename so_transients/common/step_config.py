@@ -97,6 +97,14 @@ def positive(step, **values):
             raise ConfigError(f"{step}: {key} must be positive, got {value}")
 
 
+def non_negative(step, **values):
+    """Raise a ConfigError naming ``step`` and the key unless every value (None allowed) is 0
+    or more (NaN is not)."""
+    for key, value in values.items():
+        if value is not None and not value >= 0:
+            raise ConfigError(f"{step}: {key} must be 0 or more, got {value}")
+
+
 def share(step, **values):
     """Raise a ConfigError naming ``step`` and the key unless every value is in (0, 1]: a
     share or fraction above 1 would switch its test off without saying so."""

@@ -28,7 +28,7 @@ from so_transients.common import candidates
 from so_transients.common.angles import ARCMIN, mean_direction, tangent_offsets
 from so_transients.detect.dbscan import dbscan_labels
 from so_transients.common.scan_geometry import constant_velocity, samples_in
-from so_transients.common.step_config import ConfigError, positive
+from so_transients.common.step_config import ConfigError, non_negative, positive
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +62,7 @@ class FindConfig:
             # (15 million samples); at 1, 16 %, more than a worker's memory
             raise ConfigError(f"transient_find: snr_threshold must be at least 2, got "
                               f"{self.snr_threshold}")
+        non_negative("transient_find", turnaround_buffer=self.turnaround_buffer)
         positive("transient_find", dbscan_min_samples=self.dbscan_min_samples,
                  min_cluster_samples=self.min_cluster_samples, min_dets=self.min_dets,
                  max_candidates=self.max_candidates, speed_tolerance=self.speed_tolerance,

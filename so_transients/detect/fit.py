@@ -39,7 +39,7 @@ from so_transients.common.angles import DEG
 from so_transients.detect.find import SCAN_FIELD
 from so_transients.common.robust import mad_std
 from so_transients.common.scan_geometry import constant_velocity, samples_in
-from so_transients.common.step_config import positive
+from so_transients.common.step_config import non_negative, positive
 
 #: The scan-speed tolerance ``transient_find`` stores in ``aman.transient_candidates``.
 SPEED_TOLERANCE = "speed_tolerance"
@@ -71,6 +71,7 @@ class FitConfig:
                  min_motion_arcmin_per_min=self.min_motion_arcmin_per_min,
                  motion_floor_arcsec=self.motion_floor_arcsec,
                  max_peak_ratio=self.max_peak_ratio)
+        non_negative("transient_fit", seed=self.seed)
 
     @property
     def radius(self):

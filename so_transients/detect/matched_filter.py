@@ -53,6 +53,7 @@ from so_transients.detect import spectral_ops
 from so_transients.common.angles import ARCMIN
 from so_transients.common.bands import PAPER_KNEE_HZ, nominal_fwhm_arcmin
 from so_transients.common.robust import mad_std
+from so_transients.common.step_config import non_negative, positive
 from so_transients.detect.jumps import remove_jumps
 
 @dataclass
@@ -104,6 +105,10 @@ class FilterConfig:
                     "max_noise_ratio", "max_excluded", "jump_window"):
             if not getattr(self, key) > 0:
                 raise ValueError(f"{key} must be positive, got {getattr(self, key)}")
+        non_negative("transient_filter", edge_buffer=self.edge_buffer,
+                     mask_buffer=self.mask_buffer)
+        positive("transient_filter", bright_bias=self.bright_bias,
+                 source_mask_snr=self.source_mask_snr)
         if self.max_excluded > 1 or (self.jump_threshold is not None
                                      and not self.jump_threshold > 0):
             raise ValueError(f"max_excluded must be at most 1 and jump_threshold positive or "

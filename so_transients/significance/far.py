@@ -44,7 +44,7 @@ from so_transients.coherent.statistic import (
     row_weights, term_shares, window_max
 )
 from so_transients.common.scan_geometry import sample_rate as rate_of  # (``sample_rate``: Hz)
-from so_transients.common.step_config import ConfigError, positive, share
+from so_transients.common.step_config import ConfigError, non_negative, positive, share
 from so_transients.significance.slide_groups import (
     gate_maxima, group_offsets, group_sum, min_group_samples, partial_maps, slide_groups
 )
@@ -101,6 +101,7 @@ class SignificanceConfig:
                  sidelobe_window=self.sidelobe_window,
                  max_opposite_ratio=self.max_opposite_ratio)
         share("transient_significance", max_single_share=self.max_single_share)
+        non_negative("transient_significance", seed=self.seed)
 
 
     def slides_for(self, searched_hours) -> int:

@@ -103,7 +103,9 @@ def load_group(job: GroupJob):
 
     where = f"{job.name} (archive of {job.preprocess})"
     try:
-        loaded = load_and_preprocess(job.obs_id, job.preprocess, dets=dict(job.tags))
+        # the config as a dict with its paths resolved (they may be relative to its folder)
+        loaded = load_and_preprocess(job.obs_id, read_config(job.preprocess),
+                                     dets=dict(job.tags))
     except Exception as exc:
         raise RuntimeError(f"{where}: cannot load and preprocess: {exc}") from exc
     if loaded is None or loaded[0] is None:

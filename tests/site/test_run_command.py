@@ -7,7 +7,7 @@ import yaml
 from astropy.table import Table
 
 from so_transients import cli
-from so_transients.site.pipeline import PAPER, write_site_config
+from so_transients.site.pipeline import PAPER, read_config, write_site_config
 
 pytestmark = pytest.mark.slow
 
@@ -29,7 +29,7 @@ def test_a_good_run_exits_0_with_the_catalogue_in_time_order(config, capsys):
 
 
 def test_a_misspelt_key_fails_the_run_and_names_the_key(config, tmp_path, capsys):
-    cfg = yaml.safe_load(Path(config).read_text())
+    cfg = read_config(config)                     # its paths resolved: written elsewhere
     for step in cfg["process_pipe"]:
         if step["name"] == "transient_find":
             step["calc"]["snr_treshold"] = 3.0

@@ -13,11 +13,10 @@ import json
 import sys
 from pathlib import Path
 
-from astropy.table import Table
-
 from so_transients.alerts.records import AlertsConfig, file_name, plan_alerts, read_alerts
 from so_transients.alerts.tense import TENSES, dataset_folder, event_tenses
 from so_transients.alerts.voevent import to_voevent
+from so_transients.common.tables import read_table
 
 
 def get_parser(parser=None):
@@ -58,12 +57,9 @@ def run_alerts(events_folder, out, cfg: AlertsConfig, voevent=False, tense=None)
     events_path = folder / "events.ecsv"
     if not events_path.is_file():
         raise ValueError(f"{folder}: no events.ecsv (run `so-transients events` first)")
-    events = Table.read(events_path)
-    for name in events.colnames:          # ECSV reads empty strings back as masked
-        if getattr(events[name], "mask", None) is not None and events[name].dtype.kind in "US":
-            events[name] = events[name].filled("")
+    events = read_table(events_path)
     fits_path = folder / "lightcurve_fits.ecsv"
-    fits = Table.read(fits_path) if fits_path.is_file() else None
+    fits = read_table(fits_path) if fits_path.is_file() else None
     if tense is None:
         tenses = event_tenses(events, dataset_folder(events, events_path), cfg)
     else:

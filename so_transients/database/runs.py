@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 from astropy.table import Table
 
+from so_transients.common.tables import read_table
 from so_transients.events.association import AssociationConfig
 from so_transients.events.tables import associate_detections
 from so_transients.site.results import archive_table, with_readable_columns
@@ -73,7 +74,7 @@ def readable_columns() -> set:
 
 def _read(path: Path) -> Table:
     try:
-        return Table.read(path, format="ascii.ecsv")
+        return read_table(path, format="ascii.ecsv")
     except (OSError, ValueError) as exc:
         raise ValueError(f"{path}: cannot read the table: {exc}") from None
 

@@ -37,6 +37,7 @@ from astropy.table import Table, vstack
 from tqdm.auto import tqdm
 
 from so_transients.common.parallel import executor, is_worker_rank, run_all
+from so_transients.common.tables import for_writing
 from so_transients.site.provenance import attach, provenance
 from so_transients.site.results import (
     archive_entries, archive_status, archive_table, output_format
@@ -127,8 +128,11 @@ def make_jobs(cfg: EventsConfig, events: Table, cands: Table, out: Path) -> list
 
 
 def write(table: Table, path: Path, prov: dict):
-    """ECSV or FITS (by the suffix) with the provenance in the metadata."""
-    attach(table.copy(), output_format(path, overwrite=True), prov).write(path, overwrite=True)
+    """ECSV or FITS (by the suffix) with the provenance in the metadata; empty strings read
+    back as '' (:func:`so_transients.common.tables.for_writing`)."""
+    fmt = output_format(path, overwrite=True)
+    out, extra = for_writing(attach(table.copy(), fmt, prov), fmt)
+    out.write(path, format=fmt, overwrite=True, **extra)
 
 
 def collect_units(statuses) -> Table:

@@ -9,7 +9,7 @@ Each seed simulates ``studies/configs/real_wafer.yaml`` (one MF wafer at f090, e
 imperfection drawn independently on every channel) with ten 3 Jy and five 900 mJy flares
 (t_r = 10 s, so that the flux is S_p throughout a crossing) peaking as they cross detectors
 drawn at random, at least 20 s apart. It runs the shipped site config through sotodlib's site
-pipeline (paper mode: ``configs/preprocess_realistic.yaml``; coherent mode with
+pipeline (paper mode: ``studies/configs/preprocess_paper_realistic.yaml``; coherent mode with
 ``transient_significance``: the same standard steps) and matches the detections to the truth
 within 3 s and 3'. With ``--noise-only`` (and ``--config studies/configs/ideal_wafer.yaml``
 for ideal detectors) it counts the false detections per wafer-band-hour instead.

@@ -5,8 +5,8 @@ the tests of ``tests/site/test_real_wafer.py``).
 The simulation is ``studies/configs/real_wafer.yaml`` (one MF wafer at f090, every
 imperfection drawn independently on every channel) with flares of ``t_r`` = 10 s peaking as
 they cross detectors drawn at random (so that the flux is S_p throughout a crossing). Paper
-mode runs ``configs/preprocess_realistic.yaml``; coherent mode the same standard steps with
-``transient_find`` in coherent mode and ``transient_significance``. Detections are matched to
+mode runs ``studies/configs/preprocess_paper_realistic.yaml``; coherent mode the same standard
+steps with ``transient_find`` in coherent mode and ``transient_significance``. Detections are matched to
 the truth within 3 s and 3', wider than any error the search should make, so that what is
 asserted about offsets and times can fail.
 """
@@ -31,7 +31,7 @@ from so_transients.sim.simulate import simulate
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "studies" / "configs" / "real_wafer.yaml"
-PAPER = ROOT / "configs" / "preprocess_realistic.yaml"
+PAPER = ROOT / "studies" / "configs" / "preprocess_paper_realistic.yaml"
 BRIGHT, FAINT = 3000.0, 900.0
 MATCH_DT, MATCH_OFFSET = 3.0, 3.0 * ARCMIN
 

@@ -4,6 +4,7 @@ detections on several simulation seeds, in both search modes.
     python studies/real_wafer.py                      # seeds 1-5, 10 minutes each, both modes
     python studies/real_wafer.py --seeds 1 --modes paper --keep data/real_wafer
     python studies/real_wafer.py --noise-only [--config studies/configs/ideal_wafer.yaml]
+    python studies/real_wafer.py --noise-only --modes paper --site-config <site config>
 
 Each seed simulates ``studies/configs/real_wafer.yaml`` (one MF wafer at f090, every
 imperfection drawn independently on every channel) with ten 3 Jy and five 900 mJy flares
@@ -13,7 +14,10 @@ pipeline (paper mode: ``studies/configs/preprocess_paper_realistic.yaml``; coher
 ``transient_significance``: the same standard steps) and matches the detections to the truth
 within 3 s and 3'. With ``--noise-only`` (and ``--config studies/configs/ideal_wafer.yaml``
 for ideal detectors) it counts the false detections per wafer-band-hour instead.
-Prints a Markdown table per mode and writes ``real_wafer.json``.
+``--site-config`` runs paper mode with another site config (a copy of the shipped one with a
+setting changed). Prints a Markdown table per mode and writes ``real_wafer.json``, and the
+detections no flare explains, with the cosmic rays, jumps and NaN stretches near them, to
+``real_wafer_false.ecsv`` (beside the JSON).
 """
 from __future__ import annotations
 
@@ -25,9 +29,15 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 
+from astropy.table import vstack
+
 from so_transients.campaign.real_wafer import (
-    CONFIG, flare_list, run_mode, score, simulate_seed, summary
+    CONFIG, PAPER, false_detections, flare_list, run_mode, score, simulate_seed, summary
 )
+
+FALSE_COLUMNS = ("t_obs", "snr_max", "snr_fit", "peak_ratio", "n_dets", "n_fit_dets", "flux",
+                 "peak_status", "dt_glitch", "glitch_on_peak", "dt_jump", "dt_peak_jump", "dt_gap")
+
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -39,9 +49,12 @@ def main(argv=None):
                    help="no flares: count the false detections per wafer-band-hour")
     p.add_argument("--max-far", type=float, default=0.08)
     p.add_argument("--keep", type=Path, default=None, help="folder to keep the data in")
+    p.add_argument("--site-config", type=Path, default=PAPER,
+                   help="site config of paper mode (coherent mode uses its standard steps)")
     p.add_argument("--json", type=Path, default=Path("real_wafer.json"))
     args = p.parse_args(argv)
     results = {m: {} for m in args.modes}
+    false = []
     duration = args.minutes * 60
     with tempfile.TemporaryDirectory(prefix="real_wafer_") as tmp:
         base = args.keep or Path(tmp)
@@ -49,13 +62,18 @@ def main(argv=None):
             flares = [] if args.noise_only else flare_list(seed, duration)
             sim = simulate_seed(base / f"seed{seed}", seed, duration, flares, args.config)
             for mode in args.modes:
-                found = run_mode(sim, base / f"seed{seed}_runs", mode, args.max_far)
+                found = run_mode(sim, base / f"seed{seed}_runs", mode, args.max_far,
+                                 template=args.site_config)
+                rows = false_detections(sim, found)
+                rows["seed"], rows["mode"] = seed, mode
+                false.append(rows)
                 if args.noise_only:
                     results[mode][seed] = {"false": len(found),
                                            "false_per_hour": len(found) / (duration / 3600)}
                 else:
                     rows, unmatched = score(sim, found)
                     results[mode][seed] = summary(rows, unmatched, duration / 3600)
+                results[mode][seed]["error_scale"] = found.meta["error_scale"]
                 print(mode, seed, json.dumps(results[mode][seed]), flush=True)
     for mode, per_seed in results.items():
         if args.noise_only:
@@ -74,6 +92,16 @@ def main(argv=None):
                   f"{r['bright_flux_ratio_worst']:.3f} | {r['bright_offset_max_arcmin']:.2f} | "
                   f"{r['unmatched']} |")
     args.json.write_text(json.dumps(results, indent=1))
+    false = [rows for rows in false if len(rows)]
+    false = vstack(false) if false else None
+    if false is not None:
+        false.write(args.json.with_name(args.json.stem + "_false.ecsv"), overwrite=True)
+        print("\n| mode | seed | " + " | ".join(FALSE_COLUMNS) + " |")
+        print("| --- " * (len(FALSE_COLUMNS) + 2) + "|")
+        for r in false:
+            cells = [f"{r[c]:.2f}" if isinstance(r[c], float) else str(r[c])
+                     for c in FALSE_COLUMNS]
+            print(f"| {r['mode']} | {r['seed']} | " + " | ".join(cells) + " |")
 
 
 if __name__ == "__main__":

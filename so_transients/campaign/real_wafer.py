@@ -5,10 +5,11 @@ the tests of ``tests/site/test_real_wafer.py``).
 The simulation is ``studies/configs/real_wafer.yaml`` (one MF wafer at f090, every
 imperfection drawn independently on every channel) with flares of ``t_r`` = 10 s peaking as
 they cross detectors drawn at random (so that the flux is S_p throughout a crossing). Paper
-mode runs ``studies/configs/preprocess_paper_realistic.yaml``; coherent mode the same standard
-steps with ``transient_find`` in coherent mode and ``transient_significance``. Detections are matched to
+mode runs ``studies/configs/preprocess_paper_realistic.yaml``; coherent mode the same standard steps with
+``transient_find`` in coherent mode and ``transient_significance``. Detections are matched to
 the truth within 3 s and 3', wider than any error the search should make, so that what is
-asserted about offsets and times can fail.
+asserted about offsets and times can fail. :func:`false_detections` lists the detections no
+flare explains beside the cosmic rays, jumps and NaN stretches near them in the truth.
 """
 from __future__ import annotations
 
@@ -17,14 +18,19 @@ from pathlib import Path
 import numpy as np
 import yaml
 from astropy.table import Table
+from sotodlib import core
 
 from so_transients.campaign.matching import group_crossings, match
 from so_transients.campaign.search_steps import before_fit
 from so_transients.common.angles import ARCMIN
 from so_transients.common.bands import get_band
 from so_transients.common.flare_model import flare_flux
-from so_transients.site.pipeline import failed_groups, run_site_pipeline, write_site_config
-from so_transients.site.results import archive_table
+from so_transients.site.pipeline import (
+    archive_index, failed_groups, run_site_pipeline, write_site_config
+)
+from so_transients.io.tod_file import read_tod
+from so_transients.preprocess.slot_storage import unpack
+from so_transients.site.results import archive_entries, archive_table
 from so_transients.sim.config import SimConfig
 from so_transients.sim.focal_plane import tube_detectors
 from so_transients.sim.simulate import simulate
@@ -71,9 +77,12 @@ def simulate_seed(root, seed, duration, flares, config=CONFIG):
     return simulate(SimConfig.from_dict(cfg), progress=False)
 
 
-def run_mode(sim, root, mode, max_far):
-    """The site pipeline in ``mode`` on ``sim``; the archive's detections."""
-    config = write_site_config(sim.context.parent, path=root / f"{mode}.yaml", template=PAPER,
+def run_mode(sim, root, mode, max_far, template=PAPER):
+    """The site pipeline in ``mode`` on ``sim`` (paper mode: the site config ``template``; coherent
+    mode: its standard steps); the archive's detections, with ``peak_readout`` (the readout id
+    of each one's highest-S/N detector) and in ``meta["error_scale"]`` the fit's error scales
+    measured in the groups (:func:`read_detections`)."""
+    config = write_site_config(sim.context.parent, path=root / f"{mode}.yaml", template=template,
                                results=root / mode)
     if mode == "coherent":
         cfg = yaml.safe_load(config.read_text())
@@ -83,7 +92,26 @@ def run_mode(sim, root, mode, max_far):
     failed = failed_groups(config)
     if failed:
         raise RuntimeError(f"{config}: failed groups:\n{failed}")
-    return archive_table(config)
+    return read_detections(config)
+
+
+def read_detections(config):
+    """The detections in the archive of site config ``config``, with ``peak_readout`` (the
+    readout id of each one's highest-S/N detector) and in ``meta["error_scale"]`` the fit's
+    error scales measured in the groups."""
+    every = archive_table(config, detected_only=False)
+    found = every[np.asarray(every["detected"], bool)]
+    scales = np.asarray(every["error_scale"], float)
+    found.meta["error_scale"] = sorted(set(scales[np.isfinite(scales)].round(4).tolist()))
+    peaks = {}
+    for obs_id, tags, filename, dataset in archive_entries(archive_index(config)):
+        part = unpack(core.AxisManager.load(filename, dataset)["transient_find"],
+                      fields=["cand_id"])
+        peaks.update({(obs_id, tags.get("wafer_slot"), int(c)): str(d)
+                      for c, d in zip(part["cand_id"], part["det"])})
+    found["peak_readout"] = [peaks[(r["obs_id"], r["wafer_slot"], int(r["cand_id"]))]
+                             for r in found] if len(found) else np.zeros(0, str)
+    return found
 
 
 def score(sim, found):
@@ -127,4 +155,82 @@ def summary(rows, unmatched, hours):
     out["bright_offset_max_arcmin"] = float(offsets.max()) if len(offsets) else np.nan
     out["unmatched"] = unmatched
     out["unmatched_per_hour"] = unmatched / hours
+    return out
+
+
+def _nearest(times, at):
+    """Signed time from the nearest of ``times`` to each of ``at`` (NaN if there are none)."""
+    times = np.asarray(times, float)
+    if not len(times):
+        return np.full(len(at), np.nan)
+    dt = np.asarray(at, float)[:, None] - times[None, :]
+    return dt[np.arange(len(at)), np.argmin(np.abs(dt), axis=1)]
+
+
+def false_detections(sim, found) -> Table:
+    """The detections of ``found`` (from :func:`run_mode`) that no flare explains, each with
+    what the truth holds near it.
+
+    Columns: the candidate's own (``t_peak``, ``snr_max``, ``snr_fit``, ``n_dets``,
+    ``n_fit_dets``, ``flux``, ``chi2_red``, ``peak_readout``), ``peak_ratio`` (snr_max over
+    snr_fit), ``t_obs`` (s since the observation's start), the peak detector's ``peak_status``
+    and ``peak_noise`` (noise factor) from the truth, ``dt_glitch`` (s from the wafer's nearest
+    cosmic ray) and ``glitch_on_peak`` (that cosmic ray hit the peak detector), ``dt_jump`` (s
+    from the wafer-band's nearest readout jump) and ``dt_peak_jump`` (from the peak detector's
+    nearest jump), ``dt_gap`` (s from the wafer-band's nearest NaN stretch, 0 inside one).
+    """
+    flares = Table.read(sim.context.parent / "truth" / "flares.ecsv")
+    rows = found
+    if len(flares) and len(found):
+        fwhm = {b: get_band(b).fwhm for b in set(flares["band"])}
+        crossings = group_crossings(sim.context, flares, fwhm)
+        matched = match(found, flares, crossings, max_dt=MATCH_DT, max_offset=MATCH_OFFSET)
+        rows = found[np.asarray(matched["source_id"]) < 0]
+    keep = ["obs_id", "wafer_slot", "t_peak", "snr_max", "snr_fit", "n_dets", "n_fit_dets",
+            "flux", "chi2_red", "peak_readout"]
+    out = Table({k: rows[k] for k in keep}) if len(rows) else Table(
+        {k: np.zeros(0, str if k in ("obs_id", "wafer_slot", "peak_readout") else float)
+         for k in keep})
+    t = np.asarray(out["t_peak"], float)
+    out["peak_ratio"] = np.asarray(out["snr_max"], float) / np.asarray(out["snr_fit"], float)
+    dets = sim.detectors     # empty for ideal detectors
+    names = dets["readout_id"] if len(dets) else []
+    status = dict(zip(names, dets["status"])) if len(dets) else {}
+    noise = dict(zip(names, np.asarray(dets["noise_factor"], float))) if len(dets) else {}
+    wafer_of = dict(zip(names, dets["wafer_slot"])) if len(dets) else {}
+    out["peak_status"] = [status.get(r, "ok" if not len(dets) else "?")
+                          for r in out["peak_readout"]]
+    out["peak_noise"] = [noise.get(r, 1.0 if not len(dets) else np.nan)
+                         for r in out["peak_readout"]]
+    timestamps = {}
+    for obs_id in set(out["obs_id"]):
+        tod = next((sim.context.parent / "tod" / obs_id).glob("*.h5"))
+        timestamps[obs_id] = read_tod(tod, dets=[], no_signal=True)["timestamps"]
+    out["t_obs"] = [w - timestamps[o][0] for o, w in zip(out["obs_id"], t)]
+    glitches, jumps, gaps = sim.glitches, sim.jumps, sim.gaps
+    dt_glitch, on_peak, dt_jump, dt_peak_jump, dt_gap = [], [], [], [], []
+    for row, when in zip(out, t):
+        wafer = row["wafer_slot"]
+        g = glitches[glitches["wafer_slot"] == wafer] if len(glitches) else glitches
+        d = _nearest(g["ctime"], [when])[0] if len(g) else np.nan
+        dt_glitch.append(d)
+        on_peak.append(bool(len(g)) and row["peak_readout"] in str(
+            g["readout_ids"][np.argmin(np.abs(np.asarray(g["ctime"], float) - when))]).split(","))
+        j = jumps[[wafer_of.get(r) == wafer for r in jumps["readout_id"]]] if len(jumps) else []
+        dt_jump.append(_nearest(j["ctime"], [when])[0] if len(j) else np.nan)
+        mine = j[j["readout_id"] == row["peak_readout"]] if len(j) else []
+        dt_peak_jump.append(_nearest(mine["ctime"], [when])[0] if len(mine) else np.nan)
+        s = gaps[[wafer_of.get(r) == wafer for r in gaps["readout_id"]]] if len(gaps) else []
+        if len(s):
+            begin = np.asarray(s["ctime"], float)
+            stamps = timestamps[row["obs_id"]]
+            end = stamps[np.minimum(np.asarray(s["sample"]) + np.asarray(s["n_samples"]),
+                                    len(stamps) - 1)]
+            dist = np.where((when >= begin) & (when <= end), 0.0,
+                            np.minimum(np.abs(when - begin), np.abs(when - end)))
+            dt_gap.append(float(dist.min()))
+        else:
+            dt_gap.append(np.nan)
+    out["dt_glitch"], out["glitch_on_peak"] = dt_glitch, on_peak
+    out["dt_jump"], out["dt_peak_jump"], out["dt_gap"] = dt_jump, dt_peak_jump, dt_gap
     return out

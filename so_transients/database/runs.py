@@ -25,7 +25,7 @@ from astropy.table import Table
 from so_transients.common.tables import read_table
 from so_transients.events.association import AssociationConfig
 from so_transients.events.tables import associate_detections
-from so_transients.site.results import archive_table, with_readable_columns
+from so_transients.site.results import archive_table, read_catalogue, with_readable_columns
 
 log = logging.getLogger(__name__)
 
@@ -72,9 +72,9 @@ def readable_columns() -> set:
     return set(with_readable_columns(empty).colnames) - set(empty.colnames)
 
 
-def _read(path: Path) -> Table:
+def _read(path: Path, reader=read_table) -> Table:
     try:
-        return read_table(path, format="ascii.ecsv")
+        return reader(path)
     except (OSError, ValueError) as exc:
         raise ValueError(f"{path}: cannot read the table: {exc}") from None
 
@@ -82,10 +82,10 @@ def _read(path: Path) -> Table:
 def find_detections(folder: Path, provenance: dict, detections=None) -> tuple:
     """``(table, where)``: the detections of the run in ``folder`` (see the module)."""
     if detections is not None:
-        return _read(Path(detections)), str(detections)
+        return _read(Path(detections), read_catalogue), str(detections)
     for path in (folder / "detections.ecsv", folder.parent / "detections.ecsv"):
         if path.is_file():
-            return _read(path), str(path)
+            return _read(path, read_catalogue), str(path)
     config = provenance.get("preprocess_config", "")
     if config and Path(config).is_file():
         return archive_table(config), f"the archive of {config}"

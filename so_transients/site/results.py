@@ -11,11 +11,11 @@ Two ways in, both giving the same table:
 The columns are those of :mod:`so_transients.common.candidates`, with their units (mJy for fluxes,
 rad for positions, s of ctime for times) and descriptions, after ``obs_id``; both readers add
 every angle in degrees (errors in arcseconds) and ``t_peak`` in UTC beside them
-(:func:`with_readable_columns`), so every public table gives positions in degrees.
-:func:`write_table` writes such a table with the provenance block
-(:mod:`so_transients.site.provenance`) in ECSV, FITS or CSV;
-:func:`so_transients.common.tables.read_table` reads it back as written (empty strings as
-``''``, not masked).
+(:func:`with_readable_columns`). :func:`write_table` writes such a table with the provenance
+block (:mod:`so_transients.site.provenance`) in ECSV, FITS or CSV, its angles in one unit only:
+degrees (errors in arcseconds), the radian columns left out. :func:`read_catalogue` reads it back
+as written (empty strings as ``''``, not masked) with the radians restored for the package's own
+code (:func:`with_radian_columns`).
 
 :func:`archive_status` says which groups are missing from an archive and why. sotodlib appends
 to ``errlog.txt`` across runs; :func:`so_transients.site.pipeline.run_site_pipeline` moves an earlier
@@ -36,7 +36,7 @@ from sotodlib.core.metadata import ManifestDb
 
 from so_transients.common import candidates
 from so_transients.common.angles import ARCSEC, DEG
-from so_transients.common.tables import FORMATS, for_writing
+from so_transients.common.tables import FORMATS, for_writing, read_table
 from so_transients.site.provenance import attach, provenance
 from so_transients.site.pipeline import archive_index, check_config, errlog_entries, read_config
 from so_transients.preprocess.slot_storage import unpack
@@ -277,6 +277,29 @@ def with_readable_columns(table: Table) -> Table:
     return out
 
 
+def with_radian_columns(table: Table) -> Table:
+    """A copy with the radian columns :func:`write_table` leaves out restored from their
+    degree (error: arcsecond) companions, each right before it: the inverse of
+    :func:`with_readable_columns` (a right ascension comes back in [0, 2 pi)); companions
+    read without units (CSV) are given theirs."""
+    out = table.copy()
+    for name, src, unit, scale, period, _ in readable_columns():
+        if name not in out.colnames or src in out.colnames:
+            continue
+        out[name].unit = unit
+        text = candidates.BY_NAME[src].description
+        values = np.asarray(out[name], np.float64) * scale
+        out.add_column(Column(values, name=src, unit="rad", description=text),
+                       index=out.colnames.index(name))
+    return out
+
+
+def read_catalogue(path) -> Table:
+    """A table :func:`write_table` wrote (ECSV, FITS or CSV), as the package's code uses it:
+    empty strings as ``''`` and the radian columns restored (:func:`with_radian_columns`)."""
+    return with_radian_columns(read_table(path))
+
+
 def _put(table: Table, column: Column, after):
     """Replace ``column`` in ``table`` or add it right after column ``after``."""
     if column.name in table.colnames:
@@ -300,8 +323,10 @@ def output_format(path, overwrite=False) -> str:
 
 
 def write_table(table: Table, path, config=None, obs_ids=None, overwrite=False) -> Path:
-    """Write ECSV, FITS or CSV (chosen by the suffix) with :func:`with_readable_columns` and
-    the provenance of ``config`` and ``obs_ids`` (default: the table's) in the metadata.
+    """Write ECSV, FITS or CSV (chosen by the suffix) with :func:`with_readable_columns`, its
+    angles in degrees only (errors in arcseconds: the radian columns are left out; read it back
+    with :func:`read_catalogue` to have them again), and the provenance of ``config`` and
+    ``obs_ids`` (default: the table's) in the metadata.
     Booleans stay booleans in every format (FITS logical columns) and empty strings stay
     empty (:func:`so_transients.common.tables.for_writing`): read the file back with
     :func:`so_transients.common.tables.read_table` (any format) or, for ECSV, ``Table.read``.
@@ -311,7 +336,10 @@ def write_table(table: Table, path, config=None, obs_ids=None, overwrite=False) 
     path = Path(path)
     fmt = output_format(path, overwrite)
     obs_ids = table["obs_id"] if obs_ids is None else obs_ids
-    out = attach(with_readable_columns(table), fmt, provenance(config, obs_ids))
+    readable = with_readable_columns(table)
+    radians = [src for _, src, *_ in readable_columns() if src in readable.colnames]
+    readable.remove_columns(radians)
+    out = attach(readable, fmt, provenance(config, obs_ids))
     out, extra = for_writing(out, fmt)
     path.parent.mkdir(parents=True, exist_ok=True)
     if fmt == "ascii.csv":

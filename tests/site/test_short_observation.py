@@ -6,7 +6,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from astropy.table import Table
 from sotodlib import core
 from sotodlib.tod_ops.flags import get_turnaround_flags
 
@@ -14,6 +13,7 @@ from so_transients import cli
 from so_transients.campaign.matching import compare_with_truth
 from so_transients.sim.scan import ScanPattern, boresight
 from so_transients.site.pipeline import PAPER, PRODUCTION, TEMPLATE, write_site_config
+from so_transients.site.results import read_catalogue
 from so_transients.site.turnarounds import (
     MIN_TURNAROUNDS, count_turnarounds, scanspeed_steps, short_observations
 )
@@ -115,7 +115,7 @@ def test_a_two_minute_observation_gives_its_flares_or_a_clear_error(short_run, c
     code = cli.main(["run", str(config)])
     err = capsys.readouterr().err
     if code == 0:
-        detections = Table.read(Path(config).parent / "preprocess" / "detections.ecsv")
+        detections = read_catalogue(Path(config).parent / "preprocess" / "detections.ecsv")
         matched, flares, _ = compare_with_truth(sim.context.parent, detections)
         found = set(matched["source_id"][matched["source_id"] >= 0])
         assert found == set(flares["source_id"]), (found, list(flares["source_id"]))

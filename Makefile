@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed
 # OpenMP threads spin-wait on 2 cores (pyfftw, so3g): let idle threads sleep.
 export OMP_WAIT_POLICY ?= passive
 
-.PHONY: demo test test-fast lint docs bench clean install
+.PHONY: demo test test-fast lint docs bench bench-site clean install
 
 # -qq: pip's errors only (its warnings about index locations this machine's pip
 # configuration names but lacks are noise here)
@@ -42,6 +42,12 @@ docs: $(STAMP)
 # Speed and memory of the detection chain against the FFT floor (prints a table; see README).
 bench: $(STAMP)
 	$(PY) benchmarks/bench_chain.py --json bench_chain.json
+
+# The whole production site pipeline (sotodlib's steps and ours) on one hour of one wafer-band,
+# then several groups under 1, 2 and 3 MPI ranks; prints the LAT-scale cores and memory.
+bench-site: $(STAMP)
+	$(PY) benchmarks/bench_site.py --json bench_site.json
+	$(PY) benchmarks/bench_site.py --mpi --json bench_site_mpi.json
 
 clean:
 	rm -rf data out results .pytest_cache docs/_build

@@ -13,22 +13,44 @@ detector's whole timestream) is a jump. Its sample is where the mean level chang
 a window of it (the change of the windows' medians is flat for half a window either side of
 a jump), its height the difference of the median levels ``window`` seconds before and after
 that sample. Removing it subtracts the height from every later sample.
+
+Before the common-mode (PCA) filtering, the atmosphere changes every detector's level by
+several Jy within a window, far more than a jump; :func:`remove_common_jumps` then looks for
+jumps in each detector minus its share of the wafer's common mode (the median over detectors
+of the block medians, scaled per detector by a least-squares gain fitted to the changes
+between blocks, which a jump moves in one block only), where only the detector's
+own noise is left, and subtracts them from the detector itself. A channel that records no sky
+(constant, zero) but still its readout's jumps has no spread of its own: its jumps are those
+changes of its level that exceed ``threshold`` times the wafer's typical spread.
+:class:`JumpConfig` holds the settings of the ``transient_jumps`` step that runs it.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 from so_transients.common.robust import mad_std
+from so_transients.common.step_config import positive
 
 
 def _level_changes(rows, n_block, k):
-    """Block medians of ``rows`` and, per boundary before block ``b`` (b = k .. nblk - k),
-    the median of blocks b..b+k-1 minus that of blocks b-k..b-1."""
+    """Per boundary before block ``b`` (b = k .. nblk - k) of ``rows``, the median of blocks
+    b..b+k-1 minus that of blocks b-k..b-1 (each block's median level)."""
     n = rows.shape[1] // n_block
     if n < 2 * k + 1:
         return np.zeros((len(rows), 0))
-    m = _median_last(rows[:, :n * n_block].reshape(len(rows), n, n_block))
+    return _window_changes(_block_medians(rows, n_block), k)
+
+
+def _block_medians(rows, n_block):
+    """Median of each row's consecutive ``n_block`` samples (rows, nsamp // n_block)."""
+    n = rows.shape[1] // n_block
+    return _median_last(rows[:, :n * n_block].reshape(len(rows), n, n_block))
+
+
+def _window_changes(m, k):
     windows = _median_last(sliding_window_view(m, k, axis=1))
     return windows[:, k:] - windows[:, :-k]
 
@@ -39,9 +61,10 @@ def _median_last(a):
     return np.partition(a, half, axis=-1)[..., half]
 
 
-def _locate(row, d, n_block, k, threshold):
-    """Jumps of one row from its level changes ``d``."""
-    spread = mad_std(d)
+def _locate(row, d, n_block, k, threshold, spread=None):
+    """Jumps of one row from its level changes ``d`` (whose spread is ``spread``, default
+    measured from ``d``)."""
+    spread = mad_std(d) if spread is None else spread
     if not spread > 0:
         return []
     out = []
@@ -89,5 +112,58 @@ def remove_jumps(rows, sample_rate, window=2.0, block=0.25, threshold=8.0):
     for r, (row, d) in enumerate(zip(rows, changes)):
         for sample, height in _locate(row, d, n_block, k, threshold):
             row[sample:] -= row.dtype.type(height)
+            counts[r] += 1
+    return counts
+
+
+@dataclass
+class JumpConfig:
+    """Settings of the ``transient_jumps`` step (:func:`remove_common_jumps`)."""
+
+    threshold: float = 8.0      # a jump changes the median level by this many times its spread
+    window: float = 2.0         # seconds of median level compared on each side of a jump
+    block: float = 0.25         # seconds of each block median
+    chunk_dets: int = 64        # detectors whose block medians are taken at once (memory)
+
+    def __post_init__(self):
+        positive("transient_jumps", threshold=self.threshold, window=self.window,
+                 block=self.block, chunk_dets=self.chunk_dets)
+        if self.block * 3 > self.window:
+            raise ValueError(f"transient_jumps: window ({self.window} s) must hold at least "
+                             f"3 blocks of {self.block} s")
+
+
+def remove_common_jumps(rows, sample_rate, cfg: JumpConfig = JumpConfig(), live=None):
+    """Find the jumps of every row of ``rows`` (rows, nsamp; finite) in the row minus its share
+    of the rows' common mode, and remove them from the row, in place; returns the jumps removed
+    per row. ``live``: rows (bool) whose median makes the common mode (default: every row
+    that is not constant)."""
+    n_block, k = _sizes(sample_rate, cfg.window, cfg.block)
+    nrows, nsamp = rows.shape
+    counts = np.zeros(nrows, int)
+    n = nsamp // n_block
+    if n < 2 * k + 1 or not nrows:
+        return counts
+    m = np.empty((nrows, n), np.float64)
+    for start in range(0, nrows, cfg.chunk_dets):
+        m[start:start + cfg.chunk_dets] = _block_medians(rows[start:start + cfg.chunk_dets],
+                                                        n_block)
+    live = np.ptp(m, axis=1) > 0 if live is None else np.asarray(live, bool)
+    if not live.any():
+        return counts
+    common = np.median(m[live], axis=0)
+    # gains from the changes between blocks, which a jump moves in one block only
+    dc = np.diff(common)
+    gain = (np.diff(m, axis=1) @ dc) / max(float(dc @ dc), 1e-300)
+    d = _window_changes(m - gain[:, None] * common, k)
+    spread = np.array([mad_std(row) for row in d])
+    typical = np.median(spread[live & (spread > 0)]) if np.any(live & (spread > 0)) else 0.0
+    # a row with no spread of its own (a channel recording no sky) is judged by the wafer's
+    spread = np.where(spread > 0, spread, typical)
+    common_samples = np.interp(np.arange(nsamp), (np.arange(n) + 0.5) * n_block, common)
+    for r in np.flatnonzero(np.any(np.abs(d) > cfg.threshold * spread[:, None], axis=1)):
+        residual = rows[r] - gain[r] * common_samples
+        for sample, height in _locate(residual, d[r], n_block, k, cfg.threshold, spread[r]):
+            rows[r, sample:] -= rows.dtype.type(height)
             counts[r] += 1
     return counts

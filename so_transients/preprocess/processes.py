@@ -37,6 +37,7 @@ from so_transients.detect.cuts import CutsConfig, cut_group_candidates
 from so_transients.detect.find import SCAN_FIELD, find_group_candidates, group_scans
 from so_transients.detect.fit import SPEED_TOLERANCE, FitConfig, FitInputs
 from so_transients.detect.fit_candidates import fit_group_candidates
+from so_transients.detect.jumps import JumpConfig, remove_common_jumps
 from so_transients.significance.far import SignificanceConfig, significance_by_band
 from so_transients.coherent.vetoes import Vetoes
 from so_transients.coherent.sweep_stack import StackSettings
@@ -127,6 +128,63 @@ def _check_live(excluded, where, cfg):
 
 
 # ----------------------------------------------------------------------------- the steps
+
+@_register
+class TransientJumps(_Preprocess):
+    """Remove readout jumps from ``aman.signal`` itself, before the standard steps that mix
+    detectors (``pca_filter``) or differentiate them (time-constant deconvolution).
+
+    A readout jump of a few Jy is, to a PCA, a mode of its own: each jumping detector takes one
+    of the modes the atmosphere needed, and the atmosphere left in every detector is noise
+    correlated between neighbours that the beam fit adds up into false detections. The jumps
+    are found in each detector minus its share of the wafer's common mode, as changes of its
+    median level that no crossing can make, so sources are untouched (sotodlib's
+    ``fix_jumps`` erases a bright crossing): :func:`so_transients.detect.jumps.remove_common_jumps`.
+    Non-finite samples are interpolated over to look for jumps and left non-finite.
+    ``aman.transient_n_jumps`` counts the jumps removed per detector (saved with ``save``).
+
+    Config block (after ``detrend``, before ``fourier_filter`` and ``pca_filter``)::
+
+      - name: transient_jumps
+        process:
+          threshold: 8.0        # times the spread of a detector's level changes
+          window: 2.0           # s of median level compared on each side
+        save: true
+    """
+
+    name = "transient_jumps"
+
+    def __init__(self, step_cfgs):
+        super().__init__(step_cfgs)
+        self.cfg = from_yaml(JumpConfig, self.process_cfgs, self.name)
+
+    def process(self, aman, proc_aman, sim=False, data_aman=None):
+        where = f"{self.name}: {GroupName(aman)}"
+        counts = np.zeros(aman.dets.count, int)
+        if aman.dets.count and aman.samps.count:
+            fs = scan_geometry.sample_rate(aman.timestamps, where)
+            signal = aman.signal
+            bad = {}
+            for i in np.flatnonzero(~np.isfinite(signal).all(axis=1)):
+                bad[i] = ~np.isfinite(signal[i])
+                good = np.flatnonzero(~bad[i])
+                signal[i, bad[i]] = (np.interp(np.flatnonzero(bad[i]), good, signal[i, good])
+                                     if len(good) else 0.0)
+            live = np.array([not (i in bad and bad[i].all()) for i in range(aman.dets.count)])
+            counts = remove_common_jumps(signal, fs, self.cfg, live=live & (np.ptp(
+                signal, axis=1) > 0))
+            for i, mask in bad.items():
+                signal[i, mask] = np.nan
+            log.info("%s: %d jumps removed from %d of %d detectors", where, counts.sum(),
+                     np.count_nonzero(counts), aman.dets.count)
+        _replace(aman, "transient_n_jumps", counts, [(0, "dets")])
+        return aman, proc_aman
+
+    def calc_and_save(self, aman, proc_aman):
+        if self.save_cfgs:
+            _replace(proc_aman, self.name, _per_det(aman, {"n_jumps": aman.transient_n_jumps}))
+        return aman, proc_aman
+
 
 @_register
 class TransientFilter(_Preprocess):

@@ -169,7 +169,7 @@ def test_catalog_command_writes_ecsv_and_fits_with_units(flare_run, tmp_path):
                         "-o", str(out)], check=True)
         table = Table.read(out)
         assert len(table) >= 5
-        assert str(table["flux"].unit) == "mJy" and str(table["ra"].unit) == "rad"
+        assert str(table["flux"].unit) == "mJy" and str(table["ra_deg"].unit) == "deg"
         assert str(table["t_peak"].unit) == "s"
 
 

@@ -30,6 +30,8 @@ def test_a_negative_or_nan_value_is_refused_naming_step_and_key(step, key, integ
         entry = {"name": step, "calc": {key: value}}
         if step == "transient_filter":
             entry = {"name": step, "process": {key: value}, "calc": True}
+        elif step == "transient_jumps":
+            entry = {"name": step, "process": {key: value}}
         with pytest.raises(ConfigError) as info:
             Pipeline([entry])
         assert step in str(info.value) and key in str(info.value), str(info.value)

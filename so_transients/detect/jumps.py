@@ -16,9 +16,8 @@ that sample. Removing it subtracts the height from every later sample.
 
 Before the common-mode (PCA) filtering, the atmosphere changes every detector's level by
 several Jy within a window, far more than a jump; :func:`remove_common_jumps` then looks for
-jumps in each detector minus its share of the wafer's common mode (the median over detectors
-of the block medians, scaled per detector by a least-squares gain fitted to the changes
-between blocks, which a jump moves in one block only), where only the detector's
+jumps in each detector minus its share of the wafer's common mode
+(:mod:`so_transients.detect.common_mode`), where only the detector's
 own noise is left, and subtracts them from the detector itself. A channel that records no sky
 (constant, zero) but still its readout's jumps has no spread of its own: its jumps are those
 changes of its level that exceed ``threshold`` times the wafer's typical spread.
@@ -33,6 +32,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 
 from so_transients.common.robust import mad_std
 from so_transients.common.step_config import positive
+from so_transients.detect.common_mode import block_medians, block_times, common_share, median_last
 
 
 def _level_changes(rows, n_block, k):
@@ -41,24 +41,12 @@ def _level_changes(rows, n_block, k):
     n = rows.shape[1] // n_block
     if n < 2 * k + 1:
         return np.zeros((len(rows), 0))
-    return _window_changes(_block_medians(rows, n_block), k)
-
-
-def _block_medians(rows, n_block):
-    """Median of each row's consecutive ``n_block`` samples (rows, nsamp // n_block)."""
-    n = rows.shape[1] // n_block
-    return _median_last(rows[:, :n * n_block].reshape(len(rows), n, n_block))
+    return _window_changes(block_medians(rows, n_block), k)
 
 
 def _window_changes(m, k):
-    windows = _median_last(sliding_window_view(m, k, axis=1))
+    windows = median_last(sliding_window_view(m, k, axis=1))
     return windows[:, k:] - windows[:, :-k]
-
-
-def _median_last(a):
-    """Median along the last axis, whose length is odd (a partition, no copy of a mean)."""
-    half = a.shape[-1] // 2
-    return np.partition(a, half, axis=-1)[..., half]
 
 
 def _locate(row, d, n_block, k, threshold, spread=None):
@@ -144,23 +132,17 @@ def remove_common_jumps(rows, sample_rate, cfg: JumpConfig = JumpConfig(), live=
     n = nsamp // n_block
     if n < 2 * k + 1 or not nrows:
         return counts
-    m = np.empty((nrows, n), np.float64)
-    for start in range(0, nrows, cfg.chunk_dets):
-        m[start:start + cfg.chunk_dets] = _block_medians(rows[start:start + cfg.chunk_dets],
-                                                        n_block)
+    m = block_medians(rows, n_block, cfg.chunk_dets)
     live = np.ptp(m, axis=1) > 0 if live is None else np.asarray(live, bool)
     if not live.any():
         return counts
-    common = np.median(m[live], axis=0)
-    # gains from the changes between blocks, which a jump moves in one block only
-    dc = np.diff(common)
-    gain = (np.diff(m, axis=1) @ dc) / max(float(dc @ dc), 1e-300)
+    common, gain = common_share(m, live)
     d = _window_changes(m - gain[:, None] * common, k)
     spread = np.array([mad_std(row) for row in d])
     typical = np.median(spread[live & (spread > 0)]) if np.any(live & (spread > 0)) else 0.0
     # a row with no spread of its own (a channel recording no sky) is judged by the wafer's
     spread = np.where(spread > 0, spread, typical)
-    common_samples = np.interp(np.arange(nsamp), (np.arange(n) + 0.5) * n_block, common)
+    common_samples = np.interp(np.arange(nsamp), block_times(n, n_block), common)
     for r in np.flatnonzero(np.any(np.abs(d) > cfg.threshold * spread[:, None], axis=1)):
         residual = rows[r] - gain[r] * common_samples
         for sample, height in _locate(residual, d[r], n_block, k, cfg.threshold, spread[r]):

@@ -37,6 +37,7 @@ from so_transients.detect.cuts import CutsConfig, cut_group_candidates
 from so_transients.detect.find import SCAN_FIELD, find_group_candidates, group_scans
 from so_transients.detect.fit import SPEED_TOLERANCE, FitConfig, FitInputs
 from so_transients.detect.fit_candidates import fit_group_candidates
+from so_transients.detect.common_mode import ExcursionConfig, mask_excursions
 from so_transients.detect.jumps import JumpConfig, remove_common_jumps
 from so_transients.significance.far import SignificanceConfig, significance_by_band
 from so_transients.coherent.vetoes import Vetoes
@@ -160,6 +161,7 @@ class TransientJumps(_Preprocess):
 
     def process(self, aman, proc_aman, sim=False, data_aman=None):
         where = f"{self.name}: {GroupName(aman)}"
+        require(aman, self.name)
         counts = np.zeros(aman.dets.count, int)
         if aman.dets.count and aman.samps.count:
             fs = scan_geometry.sample_rate(aman.timestamps, where)
@@ -183,6 +185,54 @@ class TransientJumps(_Preprocess):
     def calc_and_save(self, aman, proc_aman):
         if self.save_cfgs:
             _replace(proc_aman, self.name, _per_det(aman, {"n_jumps": aman.transient_n_jumps}))
+        return aman, proc_aman
+
+
+@_register
+class TransientPcaMask(_Preprocess):
+    """Hide sources from the PCA: in the PCA's model signal (``pca_filter``'s ``model_signal``,
+    the low-passed copy), each detector's brief excursions beyond its baseline (its share of
+    the wafer's common mode plus a running median of the rest) are replaced by the baseline.
+
+    A bright crossing in the model signal can become part of a PCA mode, or bias a detector's
+    weight on the modes, and ``pca_filter`` then subtracts part of the source from the signal
+    itself. ``aman.signal`` is not touched. ``aman.transient_pca_masked`` counts the samples
+    replaced per detector: :func:`so_transients.detect.common_mode.mask_excursions`.
+
+    Config block (after the low-pass ``fourier_filter``, before ``pca_filter``)::
+
+      - name: transient_pca_mask
+        process:
+          signal: lpf_signal    # the model signal pca_filter reads
+          threshold: 5.0        # times a detector's spread about its baseline
+          buffer: 0.2           # s masked around each excursion
+    """
+
+    name = "transient_pca_mask"
+
+    def __init__(self, step_cfgs):
+        super().__init__(step_cfgs)
+        self.cfg = from_yaml(ExcursionConfig, self.process_cfgs, self.name)
+
+    def process(self, aman, proc_aman, sim=False, data_aman=None):
+        where = f"{self.name}: {GroupName(aman)}"
+        require(aman, self.name, [self.cfg.signal])
+        counts = np.zeros(aman.dets.count, int)
+        if aman.dets.count and aman.samps.count:
+            model = aman[self.cfg.signal]
+            finite = np.isfinite(model).all(axis=1)
+            rows = np.flatnonzero(finite)
+            if len(rows) == aman.dets.count:
+                counts = mask_excursions(model, scan_geometry.sample_rate(
+                    aman.timestamps, where), self.cfg)
+            elif len(rows):
+                part = np.ascontiguousarray(model[rows])
+                counts[rows] = mask_excursions(part, scan_geometry.sample_rate(
+                    aman.timestamps, where), self.cfg)
+                model[rows] = part
+            log.info("%s: %d samples of %d detectors hidden from the PCA", where,
+                     counts.sum(), np.count_nonzero(counts))
+        _replace(aman, "transient_pca_masked", counts, [(0, "dets")])
         return aman, proc_aman
 
 

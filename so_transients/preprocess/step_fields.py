@@ -14,6 +14,8 @@ _POINTING = ("timestamps", "boresight.az", "boresight.el", "focal_plane.xi", "fo
 _POINTING_OPTIONAL = ("boresight.roll", BORE_Q, "obs_info.obs_id")
 
 REQUIRED = {
+    "transient_jumps": ("signal", "timestamps"),
+    "transient_pca_mask": ("timestamps",),
     "transient_filter": ("signal", "timestamps", "boresight.az", "boresight.el", "det_info"),
     "transient_find": ("transient_snr", "transient_filter.bandpass",
                        "transient_filter.beam_sigma") + _POINTING,

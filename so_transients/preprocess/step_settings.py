@@ -10,6 +10,7 @@ from __future__ import annotations
 from so_transients.coherent.config import FIND_CONFIGS
 from so_transients.common.step_config import from_yaml_parts
 from so_transients.detect.cuts import CutsConfig
+from so_transients.detect.common_mode import ExcursionConfig
 from so_transients.detect.fit import FitConfig
 from so_transients.detect.jumps import JumpConfig
 from so_transients.detect.matched_filter import FilterConfig
@@ -18,6 +19,7 @@ from so_transients.significance.far import SignificanceConfig
 #: step name -> its config dataclasses (the keys of its YAML block are theirs)
 STEP_CONFIGS = {
     "transient_jumps": (JumpConfig,),
+    "transient_pca_mask": (ExcursionConfig,),
     "transient_filter": (FilterConfig,),
     "transient_find": FIND_CONFIGS,
     "transient_cuts": (CutsConfig,),

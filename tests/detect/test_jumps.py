@@ -3,6 +3,7 @@ crossing or a cosmic ray, so that removing them cannot erase a source."""
 import numpy as np
 import pytest
 
+from so_transients.detect.common_mode import ExcursionConfig, mask_excursions
 from so_transients.detect.jumps import JumpConfig, find_jumps, remove_common_jumps, remove_jumps
 from so_transients.detect.matched_filter import FilterConfig, matched_filter
 
@@ -123,3 +124,27 @@ def test_jumps_under_a_common_atmosphere_are_removed_from_live_and_dead_channels
     assert np.array_equal(x[5, peak], clean[5, peak])   # the crossing, before its jump
     others = [r for r in range(ndet) if r not in jumps]
     assert np.array_equal(x[others], clean[others])  # the crossing of row 5 aside, nothing else
+
+
+def test_a_crossing_is_hidden_from_the_pca_model_and_the_atmosphere_is_not():
+    """mask_excursions replaces a bright crossing in the (low-passed) model signal by the
+    detector's baseline and leaves every other sample as it was."""
+    rng = np.random.default_rng(13)
+    ndet = 30
+    atmosphere = np.cumsum(rng.normal(0, 60.0, N))
+    atmosphere *= 10000.0 / atmosphere.std()
+    gains = rng.normal(1.0, 0.2, ndet)
+    box = np.ones(37) / 37                          # about a 3 Hz low-pass: 263 mJy of noise
+    white = np.array([np.convolve(row, box, mode="same") for row in noise(rng, ndet)])
+    clean = (white + gains[:, None] * atmosphere).astype(np.float32)
+    x = clean.copy()
+    x[4] += bump(3000.0, 150.0, 0.1)                # a 3 Jy crossing, low-passed
+    counts = mask_excursions(x, FS, ExcursionConfig(threshold=5.0, buffer=0.2))
+    near = slice(int(149.8 * FS), int(150.2 * FS))
+    # above 5 x 263 mJy for +-0.13 s, masked with 0.2 s around: at least 0.5 s
+    assert counts[4] >= int(0.5 * FS)
+    assert np.abs(x[4, near] - clean[4, near]).max() < 0.3 * 3000.0
+    untouched = np.ones(N, bool)
+    untouched[int(149.0 * FS):int(151.0 * FS)] = False
+    # 5 sigma excursions of Gaussian noise: 6e-7 of the samples, so nearly every row untouched
+    assert np.mean(x[:, untouched] == clean[:, untouched]) > 0.999

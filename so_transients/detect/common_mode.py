@@ -1,0 +1,108 @@
+"""A wafer's common mode at the resolution of block medians, and each detector's share of it.
+
+Before the common-mode (PCA) filtering the atmosphere moves every detector by several Jy, far
+more than its own noise, a readout jump or a crossing. Medians of ``block`` seconds of each
+detector are blind to a crossing (a fraction of a second) and to a cosmic ray; their median
+over the live detectors is the wafer's common mode, and each detector's share of it is the
+common mode times a gain fitted by least squares to the changes between blocks (a jump moves
+one such change only). What a detector does beyond its share is its own: noise, the
+atmosphere's gradients across the wafer, jumps (:func:`so_transients.detect.jumps.remove_common_jumps`)
+and sources (:func:`mask_excursions`, which hides them from the PCA's model signal).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+from so_transients.common.robust import mad_std
+from so_transients.common.step_config import positive
+
+
+def median_last(a):
+    """Median along the last axis, whose length is odd (a partition, no copy of a mean)."""
+    half = a.shape[-1] // 2
+    return np.partition(a, half, axis=-1)[..., half]
+
+
+def block_medians(rows, n_block, chunk=64):
+    """Median of each row's consecutive ``n_block`` samples, (rows, nsamp // n_block) float64,
+    ``chunk`` rows at a time (the partition copies them)."""
+    nrows, nsamp = rows.shape
+    n = nsamp // n_block
+    out = np.empty((nrows, n), np.float64)
+    for start in range(0, nrows, chunk):
+        part = rows[start:start + chunk, :n * n_block]
+        out[start:start + chunk] = median_last(part.reshape(len(part), n, n_block))
+    return out
+
+
+def common_share(m, live):
+    """``(common, gain)``: the median over the ``live`` rows of block medians ``m`` and each
+    row's least-squares gain on it, fitted to the changes between blocks."""
+    common = np.median(m[live], axis=0)
+    dc = np.diff(common)
+    gain = (np.diff(m, axis=1) @ dc) / max(float(dc @ dc), 1e-300)
+    return common, gain
+
+
+def block_times(n, n_block):
+    """Sample index of the middle of each of ``n`` blocks."""
+    return (np.arange(n) + 0.5) * n_block
+
+
+@dataclass
+class ExcursionConfig:
+    """Settings of the ``transient_pca_mask`` step (:func:`mask_excursions`)."""
+
+    signal: str = "lpf_signal"  # the PCA's model signal (pca_filter's model_signal)
+    threshold: float = 5.0      # samples this many times a detector's spread beyond its baseline
+    block: float = 0.25         # seconds of each block median
+    window: float = 2.0         # seconds of blocks whose median is the baseline beyond the share
+    buffer: float = 0.2         # seconds masked around each excursion
+    chunk_dets: int = 16        # detectors handled at once (memory)
+
+    def __post_init__(self):
+        positive("transient_pca_mask", threshold=self.threshold, block=self.block,
+                 window=self.window, buffer=self.buffer, chunk_dets=self.chunk_dets)
+
+
+def mask_excursions(rows, sample_rate, cfg: ExcursionConfig = ExcursionConfig(), live=None):
+    """Replace, in place, each row's brief excursions beyond its baseline (its share of the
+    common mode plus a running median of the rest over ``window``) by the baseline: samples
+    beyond ``threshold`` times the row's robust spread about it, and ``buffer`` seconds around
+    them. ``rows``: (rows, nsamp), finite. Returns the samples replaced per row."""
+    nrows, nsamp = rows.shape
+    counts = np.zeros(nrows, int)
+    n_block = max(1, int(round(cfg.block * sample_rate))) | 1
+    k = max(3, int(round(cfg.window / cfg.block))) | 1
+    n = nsamp // n_block
+    if n < k or not nrows:
+        return counts
+    m = block_medians(rows, n_block, cfg.chunk_dets * 4)
+    live = np.ptp(m, axis=1) > 0 if live is None else np.asarray(live, bool)
+    if not live.any():
+        return counts
+    common, gain = common_share(m, live)
+    rest = median_last(sliding_window_view(m - gain[:, None] * common, k, axis=1))
+    half = k // 2
+    t_rest = block_times(n, n_block)[half:n - half]
+    t = np.arange(nsamp)
+    common_s = np.interp(t, block_times(n, n_block), common).astype(np.float32)
+    grow = max(1, int(round(cfg.buffer * sample_rate)))
+    kernel = np.ones(2 * grow + 1)
+    for start in range(0, nrows, cfg.chunk_dets):
+        for r in range(start, min(start + cfg.chunk_dets, nrows)):
+            base = gain[r] * common_s + np.interp(t, t_rest, rest[r]).astype(np.float32)
+            excess = rows[r] - base
+            spread = mad_std(excess[::7])
+            if not spread > 0:
+                continue
+            hit = np.abs(excess) > cfg.threshold * spread
+            if not hit.any():
+                continue
+            hit = np.convolve(hit, kernel, mode="same") > 0
+            rows[r, hit] = base[hit]
+            counts[r] = int(hit.sum())
+    return counts

@@ -18,6 +18,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 
 from so_transients.common.robust import mad_std
 from so_transients.common.step_config import positive
+from so_transients.detect.spectral_ops import dilate_rows
 
 
 def median_last(a):
@@ -91,7 +92,6 @@ def mask_excursions(rows, sample_rate, cfg: ExcursionConfig = ExcursionConfig(),
     t = np.arange(nsamp)
     common_s = np.interp(t, block_times(n, n_block), common).astype(np.float32)
     grow = max(1, int(round(cfg.buffer * sample_rate)))
-    kernel = np.ones(2 * grow + 1)
     for start in range(0, nrows, cfg.chunk_dets):
         for r in range(start, min(start + cfg.chunk_dets, nrows)):
             base = gain[r] * common_s + np.interp(t, t_rest, rest[r]).astype(np.float32)
@@ -102,7 +102,7 @@ def mask_excursions(rows, sample_rate, cfg: ExcursionConfig = ExcursionConfig(),
             hit = np.abs(excess) > cfg.threshold * spread
             if not hit.any():
                 continue
-            hit = np.convolve(hit, kernel, mode="same") > 0
+            hit = dilate_rows(hit[None, :], grow)[0]
             rows[r, hit] = base[hit]
             counts[r] = int(hit.sum())
     return counts

@@ -62,7 +62,7 @@ class ExcursionConfig:
     block: float = 0.25         # seconds of each block median
     window: float = 2.0         # seconds of blocks whose median is the baseline beyond the share
     buffer: float = 0.2         # seconds masked around each excursion
-    chunk_dets: int = 16        # detectors handled at once (memory)
+    chunk_dets: int = 64        # detectors whose block medians are taken at once (memory)
 
     def __post_init__(self):
         positive("transient_pca_mask", threshold=self.threshold, block=self.block,
@@ -81,7 +81,7 @@ def mask_excursions(rows, sample_rate, cfg: ExcursionConfig = ExcursionConfig(),
     n = nsamp // n_block
     if n < k or not nrows:
         return counts
-    m = block_medians(rows, n_block, cfg.chunk_dets * 4)
+    m = block_medians(rows, n_block, cfg.chunk_dets)
     live = np.ptp(m, axis=1) > 0 if live is None else np.asarray(live, bool)
     if not live.any():
         return counts
@@ -92,17 +92,16 @@ def mask_excursions(rows, sample_rate, cfg: ExcursionConfig = ExcursionConfig(),
     t = np.arange(nsamp)
     common_s = np.interp(t, block_times(n, n_block), common).astype(np.float32)
     grow = max(1, int(round(cfg.buffer * sample_rate)))
-    for start in range(0, nrows, cfg.chunk_dets):
-        for r in range(start, min(start + cfg.chunk_dets, nrows)):
-            base = gain[r] * common_s + np.interp(t, t_rest, rest[r]).astype(np.float32)
-            excess = rows[r] - base
-            spread = mad_std(excess[::7])
-            if not spread > 0:
-                continue
-            hit = np.abs(excess) > cfg.threshold * spread
-            if not hit.any():
-                continue
-            hit = dilate_rows(hit[None, :], grow)[0]
-            rows[r, hit] = base[hit]
-            counts[r] = int(hit.sum())
+    for r in range(nrows):
+        base = gain[r] * common_s + np.interp(t, t_rest, rest[r]).astype(np.float32)
+        excess = rows[r] - base
+        spread = mad_std(excess[::7])
+        if not spread > 0:
+            continue
+        hit = np.abs(excess) > cfg.threshold * spread
+        if not hit.any():
+            continue
+        hit = dilate_rows(hit[None, :], grow)[0]
+        rows[r, hit] = base[hit]
+        counts[r] = int(hit.sum())
     return counts

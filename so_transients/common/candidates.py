@@ -125,8 +125,14 @@ SCHEMA = (
                                             "(scan and band, fitted within a beam FWHM) with "
                                             "the higher S/N that this significant fit "
                                             "repeats; -1: none"),
+    Column("real_score", "float", None, _T, "probability that the fitted candidate is a real "
+                                            "source rather than an artefact, from the "
+                                            "score_model (NaN: no model, or not fitted)"),
+    Column("pass_score", "bool", None, _T, "real_score >= min_real_score (True without a cut)",
+           missing=True),
     Column("detected", "bool", None, _T, "fit_ok, snr_fit >= min_snr, pass_peak_ratio, "
-                                          "pass_far, not moving and not a duplicate"),
+                                          "pass_far, pass_score, not moving and not a "
+                                          "duplicate"),
 )
 BY_NAME = {c.name: c for c in SCHEMA}
 

@@ -39,7 +39,7 @@ from so_transients.common.angles import DEG
 from so_transients.detect.find import SCAN_FIELD
 from so_transients.common.robust import mad_std
 from so_transients.common.scan_geometry import constant_velocity, samples_in
-from so_transients.common.step_config import non_negative, positive
+from so_transients.common.step_config import ConfigError, non_negative, positive, share
 
 #: The scan-speed tolerance ``transient_find`` stores in ``aman.transient_candidates``.
 SPEED_TOLERANCE = "speed_tolerance"
@@ -62,6 +62,8 @@ class FitConfig:
     min_motion_arcmin_per_min: float = 0.1   # a linked set moving faster is a moving source
     motion_floor_arcsec: float = 10.0        # position error floor for the motion test
     max_peak_ratio: float | None = None      # not detected: snr_max > this x snr_fit (None: off)
+    score_model: str | None = None           # real-or-artefact model: a file, or "shipped"
+    min_real_score: float | None = None      # not detected: real_score below this (None: off)
 
     def __post_init__(self):
         positive("transient_fit", window=self.window, radius_deg=self.radius_deg,
@@ -72,6 +74,10 @@ class FitConfig:
                  motion_floor_arcsec=self.motion_floor_arcsec,
                  max_peak_ratio=self.max_peak_ratio)
         non_negative("transient_fit", seed=self.seed)
+        share("transient_fit", min_real_score=self.min_real_score)
+        if self.min_real_score is not None and self.score_model is None:
+            raise ConfigError("transient_fit: min_real_score needs a score_model (a model "
+                              "file, or 'shipped')")
 
     @property
     def radius(self):

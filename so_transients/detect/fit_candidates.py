@@ -2,7 +2,7 @@
 (:func:`so_transients.detect.fit.fit_at`), or for a sweep stack the fixed-position fit of its
 crossings (:func:`so_transients.detect.forced_fit.stack_fit`), then the detection decision
 (:func:`detection_decision`): ``A0/sigma_A >= min_snr``, not moving, a brightest detector in
-proportion, ``pass_far``, and not a repeat of a detection of the same crossing
+proportion, ``pass_far``, ``pass_score``, and not a repeat of a detection of the same crossing
 (:func:`crossing_duplicates`).
 """
 from __future__ import annotations
@@ -21,9 +21,11 @@ OUTPUT_FIELDS = ("flux", "flux_err", "ra", "dec", "ra_err", "dec_err", "offset",
                  "snr_fit", "chi2_red", "n_fit_samples", "n_fit_dets", "fit_ok", "error_scale")
 
 
-def fit_group_candidates(data: FitInputs, cands, det_bands, cfg: FitConfig):
+def fit_group_candidates(data: FitInputs, cands, det_bands, cfg: FitConfig, score=None):
     """Fit every candidate of a group that passed the cuts (all when there is no ``passed``);
-    returns every ``transient_fit`` column. Significant fits whose positions move from scan
+    returns every ``transient_fit`` column. ``score``: a function of the candidates' columns
+    (with the fit's) giving ``real_score`` and ``pass_score`` (a real-or-artefact score and
+    its cut, :mod:`so_transients.score`), or None. Significant fits whose positions move from scan
     to scan are flagged ``moving`` and not ``detected``. The error scale is ``cfg.error_scale`` or, per
     band, measured at null positions that avoid only the candidates that passed the cuts
     (avoiding every candidate would leave only the quietest stretches and bias it low)."""
@@ -40,6 +42,11 @@ def fit_group_candidates(data: FitInputs, cands, det_bands, cfg: FitConfig):
     fitted = out["fit_ok"]
     out["ra"] = np.where(fitted, out["ra"], cands["cluster_ra"])
     out["dec"] = np.where(fitted, out["dec"], cands["cluster_dec"])
+    out["real_score"], out["pass_score"] = np.full(n, np.nan), np.ones(n, bool)
+    if score is not None and fitted.any():
+        values, passed_score = score({**cands, **out})
+        out["real_score"] = np.where(fitted, values, np.nan)
+        out["pass_score"] = np.where(fitted, passed_score, True)
     fwhm = {b: float(np.median(data.beam_sigma[det_bands == b])) / fwhm_to_sigma(1.0)
             for b in np.unique(cands["bandpass"])}
     out.update(detection_decision(cands, out, cfg, fwhm))
@@ -49,22 +56,24 @@ def fit_group_candidates(data: FitInputs, cands, det_bands, cfg: FitConfig):
 def detection_decision(cands, fits, cfg: FitConfig, fwhm_by_band):
     """``moving``, ``motion_rate``, ``pass_peak_ratio``, ``duplicate_of`` and ``detected`` of
     a group's fitted candidates (``fits``: their ``fit_ok``, ``snr_fit``, ``ra``, ``dec``,
-    ``ra_err``, ``dec_err``; ``fwhm_by_band``: each band's beam FWHM, radians).
+    ``ra_err``, ``dec_err``, and ``pass_score`` where a score cuts; ``fwhm_by_band``: each
+    band's beam FWHM, radians).
 
     Significant fits (``fit_ok``, ``snr_fit >= min_snr``) of one crossing are joined first
-    (:func:`crossing_duplicates`), keeping the one that passes ``pass_peak_ratio`` and
-    ``pass_far`` with the highest ``snr_fit``: the others are not detected, and their
+    (:func:`crossing_duplicates`), keeping the one that passes ``pass_peak_ratio``,
+    ``pass_far`` and ``pass_score`` with the highest ``snr_fit``: the others are not detected, and their
     ``duplicate_of`` names its ``cand_id``. The motion test then sees one detection per
     crossing (a duplicate takes its ``moving`` and ``motion_rate``)."""
     n = len(cands["bandpass"])
     significant = fits["fit_ok"] & (np.nan_to_num(fits["snr_fit"]) >= cfg.min_snr)
     out = {"pass_peak_ratio": peak_ratio_ok(cands["snr_max"], fits["snr_fit"],
                                             cfg.max_peak_ratio)}
-    pass_far = np.asarray(cands.get("pass_far", np.ones(n, bool)), bool)
+    allowed = np.asarray(cands.get("pass_far", np.ones(n, bool)), bool) \
+        & np.asarray(fits.get("pass_score", np.ones(n, bool)), bool)
     single = np.asarray(cands.get("n_crossings", np.ones(n, int))) == 1
     sel = np.flatnonzero(significant & single & (np.asarray(cands["scan"]) >= 0))
     preference = np.lexsort((-np.nan_to_num(fits["snr_fit"][sel], nan=-np.inf),
-                             ~(out["pass_peak_ratio"] & pass_far)[sel]))
+                             ~(out["pass_peak_ratio"] & allowed)[sel]))
     repeats = crossing_duplicates(cands["scan"][sel], cands["bandpass"][sel], fits["ra"][sel],
                                   fits["dec"][sel], preference,
                                   np.array([fwhm_by_band[b] for b in cands["bandpass"][sel]]))
@@ -76,7 +85,7 @@ def detection_decision(cands, fits, cfg: FitConfig, fwhm_by_band):
     cand_id = np.asarray(cands.get("cand_id", np.arange(n)))
     out.update(moving=moving, motion_rate=rate,
                duplicate_of=np.where(duplicate, cand_id[kept], -1),
-               detected=significant & ~moving & out["pass_peak_ratio"] & pass_far & ~duplicate)
+               detected=significant & ~moving & out["pass_peak_ratio"] & allowed & ~duplicate)
     return out
 
 

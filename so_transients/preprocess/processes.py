@@ -46,9 +46,10 @@ from so_transients.coherent.sweep_stack import StackSettings
 from so_transients.detect.matched_filter import (
     EXCLUDED, FilterConfig, matched_filter, response_kernels
 )
-from so_transients.common.step_config import from_yaml
+from so_transients.common.step_config import ConfigError, from_yaml
 from so_transients.sources.catalog import read_catalogue
 from so_transients.preprocess.step_fields import GroupName, require
+from so_transients.score.model import load_model
 
 log = logging.getLogger(__name__)
 LAG_AXIS = "transient_lag"
@@ -716,6 +717,12 @@ class TransientFit(_Preprocess):
     pass the cuts keep NaN fit values, their cluster position and ``detected = False``.
     ``so-transients catalog`` collects these into one table.
 
+    With a ``score_model`` (a model file, or ``shipped``: the package's, trained by
+    ``so-transients study train-score``, see :mod:`so_transients.score`), each fitted
+    candidate gets ``real_score``, the probability that it is a real source rather than an
+    artefact, from the shape of its cluster and fit; with ``min_real_score`` a candidate
+    scored below it is not detected (``pass_score`` False).
+
     ``plot``: one PNG per detection under the pipeline's ``plot_dir``, as
     ``<plot_dir>/<ctime[:5]>/<obs_id>/transient_fit_<wafer>_<band>_cand<cand_id>.png`` (named
     by the step, not by its place in ``process_pipe``): the contributing detectors' amplitude
@@ -738,6 +745,8 @@ class TransientFit(_Preprocess):
           min_motion_arcmin_per_min: 0.1  # linked ones moving faster: a moving source
           motion_floor_arcsec: 10.0       # position error floor of the motion test
           max_peak_ratio: null            # 3: not detected when snr_max > 3 x snr_fit
+          score_model: null               # real-or-artefact model: a file, or shipped
+          min_real_score: null            # not detected when real_score is below this
         save: true
         plot: true
     """
@@ -747,12 +756,25 @@ class TransientFit(_Preprocess):
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
         self.cfg = from_yaml(FitConfig, self.calc_cfgs, self.name)
+        self.model = None
+        if self.cfg.score_model is not None:
+            try:
+                self.model = load_model(self.cfg.score_model)
+            except (OSError, ValueError) as exc:
+                raise ConfigError(f"{self.name}: score_model: {exc}") from None
+
+    def _score(self, cands):
+        """``real_score`` and ``pass_score`` of the candidates (columns with the fit's)."""
+        values = self.model.score(cands)
+        cut = self.cfg.min_real_score
+        return values, (values >= cut) if cut is not None else np.ones(len(values), bool)
 
     def calc_and_save(self, aman, proc_aman):
         require(aman, self.name)
         cands = candidates.from_aman(aman.transient_candidates, CAND_AXIS)
         bands = np.asarray(aman.transient_filter.bandpass).astype(str)
-        result = fit_group_candidates(FitInputs.from_aman(aman), cands, bands, self.cfg)
+        result = fit_group_candidates(FitInputs.from_aman(aman), cands, bands, self.cfg,
+                                      score=self._score if self.model else None)
         candidates.add_to_aman(aman.transient_candidates, result, CAND_AXIS)
         _save_candidates(self, proc_aman, aman, result)
         return aman, proc_aman

@@ -25,7 +25,8 @@ group failed, unless ``--partial``; every command exits with status 2 on a refus
 
 Validation studies (``so-transients study ...``): ``campaign CONFIG`` (injection-recovery:
 efficiency, thresholds, false positives), ``combine RESULTS... -o OUT`` (several campaigns'
-results as one), ``events-check CONFIG`` (the events step on simulated flares and noise).
+results as one), ``events-check CONFIG`` (the events step on simulated flares and noise),
+``train-score CONFIG`` (the real-or-artefact score trained on simulated real wafers).
 """
 from __future__ import annotations
 
@@ -236,6 +237,18 @@ def _events_check(args):
     print(f"Events check done in {time.time() - t0:.0f} s; results in {folder}")
 
 
+def _train_score(args):
+    from so_transients.campaign.score_training import (
+        ScoreTrainingConfig, markdown, run_score_training
+    )
+
+    cfg = ScoreTrainingConfig.read(args.config, args.out)
+    t0 = time.time()
+    path, figures = run_score_training(cfg, progress=not args.quiet, model_out=args.model)
+    print(markdown(figures))
+    print(f"Score model trained in {time.time() - t0:.0f} s: {path}")
+
+
 def _campaign_combine(args):
     from so_transients.campaign.combine import combine_results
 
@@ -366,7 +379,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_demo)
 
     study = add("study", "validation studies: campaigns and the events check").add_subparsers(
-        dest="study", required=True, metavar="{campaign,combine,events-check}")
+        dest="study", required=True,
+        metavar="{campaign,combine,events-check,train-score}")
 
     def add_study(name, help_text):
         return study.add_parser(name, parents=common, help=help_text)
@@ -393,6 +407,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--out", help="output folder (default: the config's `output`)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_events_check)
+
+    p = add_study("train-score", "the real-or-artefact score: labelled candidates of simulated "
+                                 "real wafers, the model trained and measured on held-out "
+                                 "seeds and another scan pattern")
+    p.add_argument("config", help="training YAML (e.g. studies/configs/score_training.yaml)")
+    p.add_argument("-o", "--out", help="output folder (default: the config's `output`)")
+    p.add_argument("--model", help="model file to write (default: OUT/real_score.json)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_train_score)
     return parser
 
 

@@ -77,11 +77,12 @@ def simulate_seed(root, seed, duration, flares, config=CONFIG):
     return simulate(SimConfig.from_dict(cfg), progress=False)
 
 
-def run_mode(sim, root, mode, max_far, template=PAPER):
+def run_mode(sim, root, mode, max_far, template=PAPER, every=False):
     """The site pipeline in ``mode`` on ``sim`` (paper mode: the site config ``template``; coherent
     mode: its standard steps); the archive's detections, with ``peak_readout`` (the readout id
     of each one's highest-S/N detector) and in ``meta["error_scale"]`` the fit's error scales
-    measured in the groups (:func:`read_detections`)."""
+    measured in the groups (:func:`read_detections`); with ``every``, every candidate
+    (:func:`read_candidates`)."""
     config = write_site_config(sim.context.parent, path=root / f"{mode}.yaml", template=template,
                                results=root / mode)
     if mode == "coherent":
@@ -92,17 +93,24 @@ def run_mode(sim, root, mode, max_far, template=PAPER):
     failed = failed_groups(config)
     if failed:
         raise RuntimeError(f"{config}: failed groups:\n{failed}")
-    return read_detections(config)
+    return read_candidates(config) if every else read_detections(config)
+
+
+def read_candidates(config):
+    """Every candidate in the archive of site config ``config``, with in
+    ``meta["error_scale"]`` the fit's error scales measured in the groups."""
+    every = archive_table(config, detected_only=False)
+    scales = np.asarray(every["error_scale"], float)
+    every.meta["error_scale"] = sorted(set(scales[np.isfinite(scales)].round(4).tolist()))
+    return every
 
 
 def read_detections(config):
     """The detections in the archive of site config ``config``, with ``peak_readout`` (the
     readout id of each one's highest-S/N detector) and in ``meta["error_scale"]`` the fit's
     error scales measured in the groups."""
-    every = archive_table(config, detected_only=False)
+    every = read_candidates(config)
     found = every[np.asarray(every["detected"], bool)]
-    scales = np.asarray(every["error_scale"], float)
-    found.meta["error_scale"] = sorted(set(scales[np.isfinite(scales)].round(4).tolist()))
     peaks = {}
     for obs_id, tags, filename, dataset in archive_entries(archive_index(config)):
         part = unpack(core.AxisManager.load(filename, dataset)["transient_find"],

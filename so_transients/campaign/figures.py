@@ -6,7 +6,9 @@
   (injected flux at the detection's time), medians per t_r;
 * ``pointing.png``: distribution of fitted-position offsets per band, FWHM and sigma marked;
 * ``far_calibration.png`` (with a false-alarm budget): the noise-only detections with ``far <= x``
-  against ``x`` times the live time.
+  against ``x`` times the live time;
+* :func:`plot_sensitivity_timescale` (``studies/sensitivity_timescale.py``): the 90 % threshold
+  of several campaigns against the flare's duration, one panel per band.
 """
 from __future__ import annotations
 
@@ -132,3 +134,31 @@ def write_figures(folder, eff, residuals, noise_far=None, wafer_hours=None):
     plot_pointing(folder / "pointing.png", residuals)
     if noise_far is not None and len(noise_far):
         plot_far_calibration(folder / "far_calibration.png", noise_far, wafer_hours)
+
+
+def plot_sensitivity_timescale(path, curves: dict, note=""):
+    """The 90 % threshold (``s90`` +- ``s90_err``, mJy) against the flare's duration
+    (2 t_r: rise and decay), one panel per band, one line per campaign: ``curves`` maps a
+    label to its ``thresholds*.ecsv`` table (:func:`~so_transients.campaign.report.
+    threshold_table`). ``note``: a line under the panels (the false-alarm rate)."""
+    bands = sorted({str(b) for t in curves.values() for b in t["band"]})
+    fig, axes = _panels(bands)
+    styles = ["o-", "s--", "^-.", "d:", "v-", "x--"]
+    for ax, band in zip(axes, bands):
+        for (label, table), style in zip(curves.items(), styles):
+            rows = table[table["band"] == band]
+            rows = rows[np.isfinite(np.asarray(rows["s90"], float))]
+            if not len(rows):
+                continue
+            rows.sort("t_rise")
+            ax.errorbar(2 * np.asarray(rows["t_rise"], float), rows["s90"], yerr=rows["s90_err"],
+                        fmt=style, ms=4, capsize=2, label=label)
+        ax.set(xscale="log", xlabel="flare duration $2 t_r$ (s)",
+               ylabel="90 % detection threshold $S_p$ (mJy)", title=band)
+        ax.set_ylim(bottom=0)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7)
+    if note:
+        fig.text(0.5, 0.005, note, ha="center", va="bottom", fontsize=8)
+        fig.subplots_adjust(bottom=0.18)
+    _save(fig, path)

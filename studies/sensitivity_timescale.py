@@ -1,0 +1,51 @@
+"""The 90 % detection threshold against the flare's duration, as the map-domain surveys quote
+their sensitivity: one line per campaign, one panel per band.
+
+    python studies/sensitivity_timescale.py \\
+        "coherent mode=data/campaign_coherent_far/results/thresholds_far.ecsv" \\
+        "paper mode=data/campaign_paper_far/results/thresholds_far.ecsv" \\
+        --far 0.083 -o docs/results/sensitivity_timescale.png
+
+Each argument is ``LABEL=TABLE``: a campaign's threshold table (``thresholds.ecsv``,
+``thresholds_far.ecsv`` or ``thresholds_equal_rate.ecsv`` of its results folder; tables of
+several campaigns of one label, e.g. a grid and its slow rows, are joined when given as
+``LABEL=TABLE1,TABLE2``). ``--far``: the false-alarm rate the thresholds hold, per
+wafer-band-hour; the figure states it per LAT-day too (36 MF and UHF wafer-bands, 24 hours).
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from astropy.table import Table, vstack
+
+from so_transients.campaign.figures import plot_sensitivity_timescale
+
+LAT_WAFER_BANDS = 36      # 6 MF and UHF tubes x 3 wafers x 2 bands
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("curves", nargs="+", metavar="LABEL=TABLE[,TABLE]")
+    p.add_argument("--far", type=float, required=True,
+                   help="false-alarm rate of the thresholds, per wafer-band-hour")
+    p.add_argument("-o", "--out", type=Path, default=Path("sensitivity_timescale.png"))
+    args = p.parse_args(argv)
+    curves = {}
+    for item in args.curves:
+        label, _, paths = item.partition("=")
+        if not paths:
+            p.error(f"{item!r}: expected LABEL=TABLE")
+        curves[label] = vstack([Table.read(path) for path in paths.split(",")])
+    per_day = args.far * LAT_WAFER_BANDS * 24
+    note = (f"false-alarm rate {args.far:g} per wafer-band-hour = {per_day:.0f} per LAT-day "
+            f"({LAT_WAFER_BANDS} MF and UHF wafer-bands)")
+    plot_sensitivity_timescale(args.out, curves, note)
+    for label, table in curves.items():
+        print(label)
+        table["band", "t_rise", "s90", "s90_err"].pprint(max_lines=-1)
+    print(f"{note}\nwritten {args.out}")
+
+
+if __name__ == "__main__":
+    main()

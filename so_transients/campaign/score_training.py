@@ -19,16 +19,22 @@ fitted with ``snr_fit >= min_snr_fit`` is kept, labelled
 ``output/``::
 
     candidates/<set>_seed<N>_<mode>.ecsv   each seed's labelled candidates (kept: a rerun
-                                           trains again without simulating)
+                                           trains again without simulating); with
+                                           ``open_cuts`` also ``..._open.ecsv``, the run
+                                           with every cut open (``hand_cuts``: the cuts
+                                           passed it in the configured run)
     work/<set>_seed<N>/                    the seed's simulation and archives, deleted once
                                            its candidates are written
-    real_score.json                        the model (:mod:`so_transients.score.model`)
-    score.md                               the measured table
+    real_score.json                        the model (:mod:`so_transients.score.model`;
+                                           ``real_score_open.json`` with ``open_cuts``)
+    real_score.md                          the measured tables (``real_score_open.md``)
 
 The model is trained on the ``train_seeds`` of both modes together and measured, per mode, on
 ``test_seeds`` (same scan) and ``scan_seeds`` (the ``test_scan`` pattern): the share of
 artefacts rejected at the cut keeping 99 % and 99.9 % of the real candidates, and at the
-99 % cut how many of the detections each kind would lose.
+99 % cut how many of the detections each kind would lose; for every fitted candidate, and for
+the significant ones (``snr_fit >= 5``: the only ones a cut on the score changes, and where
+a fluctuation of the noise no longer passes for a source by its S/N alone).
 """
 from __future__ import annotations
 
@@ -75,6 +81,8 @@ class ScoreTrainingConfig:
     s_peak_mjy: list = field(default_factory=lambda: [150.0, 3000.0])   # log-uniform
     t_rise: list = field(default_factory=lambda: [0.5, 1.0, 2.5, 5.0, 10.0, 30.0])
     min_snr_fit: float = 3.0
+    open_cuts: bool = False           # also run with transient_cuts open: train on every
+    #                                   candidate, and compare the score with the cuts
     match_dt: float = 1.0
     match_offset_arcmin: float = 0.5
     loose_dt: float = 3.0
@@ -115,13 +123,15 @@ def flare_list(seed, duration, n, s_peak_mjy, t_rise, wafer="w16", band="f090"):
             for d, t, s, r in zip(rng.choice(names, n, replace=False), times, fluxes, rises)]
 
 
-def label(candidates: Table, flares: Table, crossings: dict, cfg) -> np.ndarray:
-    """1 real, 0 artefact, -1 a flare fitted off its position (see the module doc)."""
+def label(candidates: Table, flares: Table, crossings: dict, cfg) -> tuple:
+    """(label, source_id): 1 real, 0 artefact, -1 a flare fitted off its position (see the
+    module doc), and the flare a real candidate is matched to (-1 for the others)."""
     tight = match(candidates, flares, crossings, cfg.match_dt, cfg.match_offset_arcmin * ARCMIN)
     loose = match(candidates, flares, crossings, cfg.loose_dt, cfg.loose_offset_arcmin * ARCMIN)
+    source = np.asarray(tight["source_id"])
     out = np.where(np.asarray(loose["source_id"]) >= 0, -1, 0)
-    out[np.asarray(tight["source_id"]) >= 0] = 1
-    return out
+    out[source >= 0] = 1
+    return out, source
 
 
 def seed_sets(cfg) -> list:
@@ -131,14 +141,51 @@ def seed_sets(cfg) -> list:
             + [("scan", s, cfg.test_scan) for s in cfg.scan_seeds])
 
 
-def candidates_path(cfg, kind, seed, mode) -> Path:
-    return cfg.output / "candidates" / f"{kind}_seed{seed}_{mode}.ecsv"
+def candidates_path(cfg, kind, seed, mode, variant="") -> Path:
+    suffix = f"_{variant}" if variant else ""
+    return cfg.output / "candidates" / f"{kind}_seed{seed}_{mode}{suffix}.ecsv"
+
+
+def variants(cfg) -> list:
+    """The runs of each mode: as configured (``""``) and, with ``open_cuts``, with every
+    cut of ``transient_cuts`` open (``"open"``)."""
+    return ["", "open"] if cfg.open_cuts else [""]
+
+
+def open_cuts_template(template, error_scale, out) -> Path:
+    """A copy of the site config ``template`` whose ``transient_cuts`` pass every candidate
+    (each is then fitted) and whose ``transient_fit`` uses the fixed ``error_scale`` of the
+    run with the cuts (which avoids only the candidates that passed them when measuring it)."""
+    cfg = yaml.safe_load(Path(template).read_text())
+    for step in cfg["process_pipe"]:
+        if step["name"] == "transient_cuts":
+            step["calc"] = {**(step.get("calc") or {}), **OPEN_CUTS}
+        if step["name"] == "transient_fit":
+            step["calc"] = {**(step.get("calc") or {}), "error_scale": float(error_scale)}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return out
+
+
+#: transient_cuts settings that pass every candidate
+OPEN_CUTS = {"min_aspect_ratio": 1e-9, "time_tolerance": 1e9, "max_opposite_ratio": 1e9}
+
+
+def _labelled(every, truth, crossings, cfg, mode, seed, kind, scan, n_flares):
+    fitted = every[np.asarray(every["fit_ok"], bool)
+                   & (np.nan_to_num(np.asarray(every["snr_fit"], float)) >= cfg.min_snr_fit)]
+    fitted["label"], fitted["source_id"] = label(fitted, truth, crossings, cfg)
+    fitted["mode"], fitted["seed"], fitted["set"] = mode, seed, kind
+    fitted.meta = {"simulation": cfg.simulation, "seed": seed, "scan": scan or {},
+                   "mode": mode, "n_flares": n_flares}
+    return fitted
 
 
 def make_candidates(cfg, kind, seed, scan, progress=True):
-    """Simulate one seed, run each mode, write its labelled candidates (skipped when they
-    exist)."""
-    todo = [m for m in cfg.modes if not candidates_path(cfg, kind, seed, m).exists()]
+    """Simulate one seed, run each mode (and variant), write its labelled candidates (skipped
+    when they exist)."""
+    todo = [(m, v) for m in cfg.modes for v in variants(cfg)
+            if not candidates_path(cfg, kind, seed, m, v).exists()]
     if not todo:
         return
     sim_cfg = yaml.safe_load((ROOT / cfg.simulation).read_text()
@@ -156,48 +203,60 @@ def make_candidates(cfg, kind, seed, scan, progress=True):
                                 {b: get_band(b).fwhm for b in set(truth["band"])})
     template = Path(cfg.preprocess)
     template = template if template.is_absolute() else ROOT / template
-    for mode in todo:
-        every = run_mode(sim, work / "runs", mode, cfg.max_far, template=template, every=True)
-        fitted = every[np.asarray(every["fit_ok"], bool)
-                       & (np.nan_to_num(np.asarray(every["snr_fit"], float)) >= cfg.min_snr_fit)]
-        fitted["label"] = label(fitted, truth, crossings, cfg)
-        fitted["mode"], fitted["seed"], fitted["set"] = mode, seed, kind
-        fitted.meta = {"simulation": cfg.simulation, "seed": seed, "scan": scan or {},
-                       "mode": mode, "n_flares": len(flares)}
-        path = candidates_path(cfg, kind, seed, mode)
+    for mode, variant in todo:
+        path = candidates_path(cfg, kind, seed, mode, variant)
+        if variant == "open":
+            cut = Table.read(candidates_path(cfg, kind, seed, mode))
+            scales = np.asarray(cut["error_scale"], float)
+            scale = float(np.median(scales[np.isfinite(scales)])) if len(cut) else 1.0
+            site = open_cuts_template(template, scale, work / "open_template.yaml")
+            every = run_mode(sim, work / "runs_open", mode, cfg.max_far, template=site,
+                             every=True)
+        else:
+            every = run_mode(sim, work / "runs", mode, cfg.max_far, template=template,
+                             every=True)
+        fitted = _labelled(every, truth, crossings, cfg, mode, seed, kind, scan, len(flares))
+        if variant == "open":     # what the configured cuts decided of each candidate
+            kept = set(zip(cut["obs_id"], cut["cand_id"])) if len(cut) else set()
+            fitted["hand_cuts"] = [(o, c) in kept for o, c in zip(fitted["obs_id"],
+                                                                 fitted["cand_id"])]
         path.parent.mkdir(parents=True, exist_ok=True)
         fitted.write(path.with_suffix(".tmp.ecsv"), overwrite=True)
         path.with_suffix(".tmp.ecsv").replace(path)
         if progress:
             n = np.bincount(np.asarray(fitted["label"]) + 1, minlength=3)
-            tqdm.write(f"{kind} seed {seed} {mode}: {n[2]} real, {n[1]} artefact, "
-                       f"{n[0]} off-position")
+            tqdm.write(f"{kind} seed {seed} {mode}{' ' + variant if variant else ''}: "
+                       f"{n[2]} real, {n[1]} artefact, {n[0]} off-position")
     shutil.rmtree(work, ignore_errors=True)   # the simulation and archives: tens of GB a set
 
 
-def read_set(cfg, kind) -> Table:
-    parts = [Table.read(candidates_path(cfg, k, s, m)) for k, s, _ in seed_sets(cfg)
+def read_set(cfg, kind, variant="") -> Table:
+    parts = [Table.read(candidates_path(cfg, k, s, m, variant)) for k, s, _ in seed_sets(cfg)
              if k == kind for m in cfg.modes]
     parts = [p for p in parts if len(p)]
     return vstack(parts, metadata_conflicts="silent") if parts else Table()
 
 
-def measure(model: ScoreModel, table: Table, recalls=(0.99, 0.999)) -> dict:
-    """Per mode: :func:`~so_transients.score.training.rejection` of the model's scores, and at
-    the 99 % cut the detections (``detected``) of each label it keeps."""
+def measure(model: ScoreModel, table: Table, min_snr=5.0, recalls=(0.99, 0.999)) -> dict:
+    """Per mode and population (``fitted``: every labelled candidate; ``significant``: those
+    with ``snr_fit >= min_snr``, the ones a cut on the score can still change):
+    :func:`~so_transients.score.training.rejection` of the model's scores, and at the 99 %
+    cut of that population the detections (``detected``) of each label it keeps."""
     out = {}
     for mode in sorted(set(table["mode"])):
         t = table[(table["mode"] == mode) & (np.asarray(table["label"]) >= 0)]
         s = model.score(t)
         real = np.asarray(t["label"]) == 1
-        res = rejection(s[real], s[~real], recalls)
-        cut = threshold_at_recall(s[real], recalls[0])
         det = np.asarray(t["detected"], bool)
-        res["detections"] = {"real": int((det & real).sum()),
-                             "real_kept": int((det & real & (s >= cut)).sum()),
-                             "artefact": int((det & ~real).sum()),
-                             "artefact_kept": int((det & ~real & (s >= cut)).sum())}
-        out[mode] = res
+        for name, sel in (("fitted", np.ones(len(t), bool)),
+                          ("significant", np.asarray(t["snr_fit"], float) >= min_snr)):
+            res = rejection(s[sel & real], s[sel & ~real], recalls)
+            cut = threshold_at_recall(s[sel & real], recalls[0])
+            res["detections"] = {"real": int((det & real).sum()),
+                                 "real_kept": int((det & real & (s >= cut)).sum()),
+                                 "artefact": int((det & ~real).sum()),
+                                 "artefact_kept": int((det & ~real & (s >= cut)).sum())}
+            out[f"{mode}/{name}"] = res
     return out
 
 
@@ -209,31 +268,84 @@ def _commit():
         return ""
 
 
+def _per_flare(values, source, how):
+    """``how`` (np.max, np.any) of ``values`` over each flare's real candidates."""
+    return np.array([how(values[source == f]) for f in np.unique(source)])
+
+
+def against_cuts(model: ScoreModel, table: Table) -> dict:
+    """Per mode, on the candidates of the runs with the cuts open: the configured cuts' share
+    of flares kept (a flare is kept when one of its real candidates is) and of artefacts
+    rejected (``hand_cuts``), and the share of artefacts the score rejects at the cut keeping
+    as many flares, and at the cut keeping 99 % of them."""
+    out = {}
+    for mode in sorted(set(table["mode"])):
+        t = table[(table["mode"] == mode) & (np.asarray(table["label"]) >= 0)]
+        real = np.asarray(t["label"]) == 1
+        if not real.any() or real.all():
+            continue
+        source = np.asarray(t["source_id"])[real]
+        hand = np.asarray(t["hand_cuts"], bool)
+        s = model.score(t)
+        best = _per_flare(s[real], source, np.max)
+        recall = float(_per_flare(hand[real], source, np.any).mean())
+        same, at99 = threshold_at_recall(best, recall), threshold_at_recall(best, 0.99)
+        out[mode] = {"n_flares": len(best), "n_real": int(real.sum()),
+                     "n_false": int((~real).sum()), "cuts_recall": recall,
+                     "cuts_rejected": float((~hand[~real]).mean()),
+                     "score_rejected_same_recall": float((s[~real] < same).mean()),
+                     "score_rejected_99": float((s[~real] < at99).mean()),
+                     "score_recall_99": float((best >= at99).mean()), "cut_99": at99}
+    return out
+
+
 def train_and_measure(cfg) -> tuple[ScoreModel, dict]:
-    train = read_set(cfg, "train")
+    """The model trained on the ``train`` seeds (every candidate of the runs with the cuts
+    open, with ``open_cuts``; else those the cuts passed), and its figures on the held-out
+    sets: ``test`` and ``scan`` (:func:`measure`, the candidates the cuts passed) and, with
+    ``open_cuts``, ``test_open`` and ``scan_open`` (:func:`against_cuts`)."""
+    variant = "open" if cfg.open_cuts else ""
+    train = read_set(cfg, "train", variant)
     use = np.asarray(train["label"]) >= 0
-    trained = {"config": getattr(cfg, "source", ""), "settings": json.loads(json.dumps(
-                   asdict(cfg), default=str)),
+    settings = {k: v for k, v in asdict(cfg).items() if k != "output"}   # a local folder
+    trained = {"config": getattr(cfg, "source", ""),
+               "settings": json.loads(json.dumps(settings, default=str)),
                "commit": _commit(), "date": datetime.now(timezone.utc).strftime("%Y-%m-%d")}
     model = train_model(train[use], np.asarray(train["label"])[use], cfg.seed, cfg.version,
                         trained, **cfg.forest)
     figures = {kind: measure(model, read_set(cfg, kind)) for kind in ("test", "scan")}
+    if cfg.open_cuts:
+        figures.update({f"{kind}_open": against_cuts(model, read_set(cfg, kind, "open"))
+                        for kind in ("test", "scan")})
     model.figures = figures
     return model, figures
 
 
 def markdown(figures) -> str:
-    lines = ["| held out | mode | real | artefacts | rejected at 99 % recall | at 99.9 % | "
-             "real detections kept | artefact detections kept |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     names = {"test": "seeds", "scan": "seeds, other scan"}
-    for kind, per_mode in figures.items():
-        for mode, r in per_mode.items():
+    lines = ["| held out | mode | candidates | real | artefacts | rejected at 99 % recall "
+             "(cut) | at 99.9 % | real detections kept | artefact detections kept |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for kind in ("test", "scan"):
+        for key, r in figures.get(kind, {}).items():
+            mode, population = key.split("/")
             a, b, d = r["0.99"], r["0.999"], r["detections"]
-            lines.append(f"| {names[kind]} | {mode} | {a['n_real']} | {a['n_false']} | "
-                         f"{a['rejected']:.3f} (cut {a['cut']:.3f}) | {b['rejected']:.3f} | "
-                         f"{d['real_kept']} / {d['real']} | {d['artefact_kept']} / "
-                         f"{d['artefact']} |")
+            lines.append(f"| {names[kind]} | {mode} | {population} | {a['n_real']} | "
+                         f"{a['n_false']} | {a['rejected']:.3f} ({a['cut']:.3f}) | "
+                         f"{b['rejected']:.3f} | {d['real_kept']} / {d['real']} | "
+                         f"{d['artefact_kept']} / {d['artefact']} |")
+    if any(k.endswith("_open") for k in figures):
+        lines += ["", "| held out | mode | flares | artefacts | cuts: flares kept | cuts: "
+                  "artefacts rejected | score: artefacts rejected at the cuts' flares | "
+                  "score: flares kept, artefacts rejected at 99 % (cut) |",
+                  "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+        for kind in ("test", "scan"):
+            for mode, r in figures.get(f"{kind}_open", {}).items():
+                lines.append(f"| {names[kind]} | {mode} | {r['n_flares']} | {r['n_false']} | "
+                             f"{r['cuts_recall']:.3f} | {r['cuts_rejected']:.3f} | "
+                             f"{r['score_rejected_same_recall']:.3f} | "
+                             f"{r['score_recall_99']:.3f}, {r['score_rejected_99']:.3f} "
+                             f"({r['cut_99']:.3f}) |")
     return "\n".join(lines) + "\n"
 
 
@@ -244,7 +356,8 @@ def run_score_training(cfg: ScoreTrainingConfig, progress=True, model_out=None):
     for kind, seed, scan in tqdm(sets, desc="seeds", disable=not progress):
         make_candidates(cfg, kind, seed, scan, progress)
     model, figures = train_and_measure(cfg)
-    path = model.save(model_out or cfg.output / "real_score.json")
-    (cfg.output / "score.md").write_text(markdown(figures))
+    name = "real_score_open" if cfg.open_cuts else "real_score"
+    path = model.save(model_out or cfg.output / f"{name}.json")
+    (cfg.output / f"{name}.md").write_text(markdown(figures))
     return path, figures
 

@@ -17,7 +17,9 @@ def test_a_candidate_is_real_at_a_crossing_left_out_near_one_and_an_artefact_els
     cands = Table({"obs_id": ["obs1"] * 6, "wafer_slot": ["w16"] * 6,
                    "bandpass": ["f090"] * 5 + ["f150"], "ra": ra0 + dra,
                    "dec": np.full(6, dec0), "t_peak": t})
-    assert list(label(cands, flares, crossings, cfg)) == [1, 1, -1, -1, 0, 0]
+    labels, source = label(cands, flares, crossings, cfg)
+    assert list(labels) == [1, 1, -1, -1, 0, 0]
+    assert list(source) == [7, 7, -1, -1, -1, -1]
 
 
 def test_flares_are_drawn_over_the_configured_range_each_at_a_detector():

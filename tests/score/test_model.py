@@ -6,7 +6,7 @@ import pytest
 
 from so_transients.common import candidates
 from so_transients.score.features import FEATURES, MISSING, feature_matrix
-from so_transients.score.model import load_model
+from so_transients.score.model import SHIPPED, load_model
 from so_transients.score.training import rejection, threshold_at_recall, train_model
 
 
@@ -97,3 +97,11 @@ def test_a_bad_model_file_is_named(tmp_path):
     with pytest.raises(ValueError, match="bad.json.*format 99"):
         load_model(bad)
 
+
+
+def test_the_shipped_model_reads_and_scores():
+    model = load_model("shipped")
+    assert SHIPPED.is_file() and model.trained.get("config") and model.figures
+    c = _cands(4, np.random.default_rng(5), glitch=False)
+    s = model.score(c)
+    assert s.shape == (4,) and ((0 <= s) & (s <= 1)).all()

@@ -25,10 +25,11 @@ from so_transients.preprocess.step_settings import step_of, step_setting
 #: time slides, so the fast path leaves it out (it reports, and cuts, nothing there), except
 #: without slides for a paper-mode false-alarm budget (:func:`with_coherent_snr`).
 SEARCH_STEPS = tuple(s for s in candidates.STEPS if s != "transient_significance")
-#: Columns of a campaign's detection tables (besides ``obs_id``).
+#: Columns of a campaign's detection tables (besides ``obs_id``); ``real_score`` (NaN without
+#: a ``score_model``) lets the thresholds at any cut on the score be found from one campaign.
 DETECTION_COLUMNS = ("bandpass", "wafer_slot", "t_peak", "ra", "dec", "ra_err", "dec_err",
                      "flux", "flux_err", "snr_fit", "n_dets", "snr_max", "map_z",
-                     "coherent_snr", "n_crossings")
+                     "coherent_snr", "n_crossings", "real_score")
 
 
 def split_pipe(process_pipe):

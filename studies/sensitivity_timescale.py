@@ -38,7 +38,7 @@ def main(argv=None):
             p.error(f"{item!r}: expected LABEL=TABLE")
         curves[label] = vstack([Table.read(path) for path in paths.split(",")])
     per_day = args.far * LAT_WAFER_BANDS * 24
-    note = (f"false-alarm rate {args.far:g} per wafer-band-hour = {per_day:.0f} per LAT-day "
+    note = (f"false-alarm rate {args.far:.3g} per wafer-band-hour = {per_day:.0f} per LAT-day "
             f"({LAT_WAFER_BANDS} MF and UHF wafer-bands)")
     plot_sensitivity_timescale(args.out, curves, note)
     for label, table in curves.items():

@@ -158,7 +158,8 @@ def plot_sensitivity_timescale(path, curves: dict, note=""):
         ax.set_ylim(bottom=0)
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=7)
+    fig.tight_layout(rect=(0, 0.05 if note else 0, 1, 1))
     if note:
-        fig.text(0.5, 0.005, note, ha="center", va="bottom", fontsize=8)
-        fig.subplots_adjust(bottom=0.18)
-    _save(fig, path)
+        fig.text(0.5, 0.01, note, ha="center", va="bottom", fontsize=8)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

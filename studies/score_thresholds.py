@@ -87,22 +87,23 @@ def main(argv=None):
                          & (True if cut is None else np.asarray(t["real_score"]) >= cut)).sum())
                     for t in (noise, inverted))
         rows.append((cut, thresholds, n_noise, at_snr, n_fit))
-    label = lambda cut: "no cut" if cut is None else f"real_score >= {cut:g}"
-    t_rises = list(rows[0][1]["t_rise"])
-    print("| cut | " + " | ".join(f"t_r {t:g} s" for t in t_rises)
-          + f" | noise-only within the budget ({sum(hours.values()):.0f} wbh) |")
-    print("| --- " * (len(t_rises) + 2) + "|")
-    for cut, thresholds, n_noise, _, _ in rows:
-        cells = [f"{a:.0f} ± {b:.0f}" for a, b in zip(thresholds["s90"], thresholds["s90_err"])]
-        print(f"| {label(cut)} | " + " | ".join(cells) + f" | {n_noise} |")
+    print_table(rows, 1, 2, f"noise-only within the budget ({sum(hours.values()):.0f} wbh)")
     print("\nAt the paper's fitted S/N >= 5 (no budget):\n")
-    print("| cut | " + " | ".join(f"t_r {t:g} s" for t in t_rises)
-          + f" | noise-only and inverted detections ({2 * sum(hours.values()):.0f} wbh) |")
-    print("| --- " * (len(t_rises) + 2) + "|")
-    for cut, _, _, thresholds, n_fit in rows:
-        cells = [f"{a:.0f} ± {b:.0f}" for a, b in zip(thresholds["s90"], thresholds["s90_err"])]
-        print(f"| {label(cut)} | " + " | ".join(cells) + f" | {n_fit} |")
+    print_table(rows, 3, 4, f"noise-only and inverted detections "
+                            f"({2 * sum(hours.values()):.0f} wbh)")
 
+
+def print_table(rows, thresholds_at, count_at, count_name):
+    """A Markdown row per cut: the 90 % thresholds (``row[thresholds_at]``) per t_r and the
+    count ``row[count_at]``."""
+    t_rises = list(rows[0][thresholds_at]["t_rise"])
+    print("| cut | " + " | ".join(f"t_r {t:g} s" for t in t_rises) + f" | {count_name} |")
+    print("| --- " * (len(t_rises) + 2) + "|")
+    for row in rows:
+        cut, thresholds = row[0], row[thresholds_at]
+        cells = [f"{a:.0f} ± {b:.0f}" for a, b in zip(thresholds["s90"], thresholds["s90_err"])]
+        label = "no cut" if cut is None else f"real_score >= {cut:g}"
+        print(f"| {label} | " + " | ".join(cells) + f" | {row[count_at]} |")
 
 if __name__ == "__main__":
     main()

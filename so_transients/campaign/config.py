@@ -245,3 +245,18 @@ def load_campaign(path, overrides: dict | None = None) -> CampaignConfig:
         if candidate.exists():
             data["preprocess"] = str(candidate)
     return CampaignConfig(**data)
+
+
+def read_study_config(cls, path, output=None):
+    """An instance of the study config dataclass ``cls`` (it has an ``output`` folder) from the
+    YAML file ``path``, ``output`` replacing the file's; a key ``cls`` lacks, or a missing one,
+    is refused naming the file."""
+    raw = yaml.safe_load(Path(path).read_text()) or {}
+    if output:
+        raw["output"] = output
+    try:
+        cfg = cls(**raw)
+    except TypeError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+    cfg.output = Path(cfg.output)
+    return cfg

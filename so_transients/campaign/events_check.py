@@ -35,6 +35,7 @@ from so_transients.common.robust import mad_std
 from so_transients.sim.config import SimConfig
 from so_transients.sim.simulate import simulate
 from so_transients.site.pipeline import failed_groups, run_site_pipeline, write_site_config
+from so_transients.campaign.config import read_study_config
 from so_transients.campaign.full_check import site_processes
 
 #: Rise-time bins (s) of the light-curve recovery table.
@@ -55,15 +56,7 @@ class EventsCheckConfig:
 
     @classmethod
     def read(cls, path, output=None):
-        raw = yaml.safe_load(Path(path).read_text())
-        if output:
-            raw["output"] = output
-        try:
-            cfg = cls(**raw)
-        except TypeError as exc:
-            raise ValueError(f"{path}: {exc}") from None
-        cfg.output = Path(cfg.output)
-        return cfg
+        return read_study_config(cls, path, output)
 
 
 def run_dataset(cfg: EventsCheckConfig, name, seed, flares: bool, progress=True):

@@ -50,6 +50,7 @@ import yaml
 from astropy.table import Table, vstack
 from tqdm.auto import tqdm
 
+from so_transients.campaign.config import read_study_config
 from so_transients.campaign.matching import group_crossings, match
 from so_transients.campaign.real_wafer import run_mode
 from so_transients.common.angles import ARCMIN
@@ -94,14 +95,7 @@ class ScoreTrainingConfig:
 
     @classmethod
     def read(cls, path, output=None):
-        raw = yaml.safe_load(Path(path).read_text()) or {}
-        if output:
-            raw["output"] = output
-        try:
-            cfg = cls(**raw)
-        except TypeError as exc:
-            raise ValueError(f"{path}: {exc}") from None
-        cfg.output = Path(cfg.output)
+        cfg = read_study_config(cls, path, output)
         cfg.source = str(path)
         return cfg
 
@@ -188,9 +182,7 @@ def make_candidates(cfg, kind, seed, scan, progress=True):
             if not candidates_path(cfg, kind, seed, m, v).exists()]
     if not todo:
         return
-    sim_cfg = yaml.safe_load((ROOT / cfg.simulation).read_text()
-                             if not Path(cfg.simulation).is_absolute()
-                             else Path(cfg.simulation).read_text())
+    sim_cfg = yaml.safe_load((ROOT / cfg.simulation).read_text())   # an absolute path stays
     sim_cfg["observation"]["duration"] = cfg.duration
     if scan:
         sim_cfg["scan"] = {**sim_cfg.get("scan", {}), **scan}
@@ -201,8 +193,7 @@ def make_candidates(cfg, kind, seed, scan, progress=True):
     truth = Table.read(sim.context.parent / "truth" / "flares.ecsv")
     crossings = group_crossings(sim.context, truth,
                                 {b: get_band(b).fwhm for b in set(truth["band"])})
-    template = Path(cfg.preprocess)
-    template = template if template.is_absolute() else ROOT / template
+    template = ROOT / cfg.preprocess
     for mode, variant in todo:
         path = candidates_path(cfg, kind, seed, mode, variant)
         if variant == "open":

@@ -44,9 +44,8 @@ def fit_group_candidates(data: FitInputs, cands, det_bands, cfg: FitConfig, scor
     out["dec"] = np.where(fitted, out["dec"], cands["cluster_dec"])
     out["real_score"], out["pass_score"] = np.full(n, np.nan), np.ones(n, bool)
     if score is not None and fitted.any():
-        values, passed_score = score({**cands, **out})
-        out["real_score"] = np.where(fitted, values, np.nan)
-        out["pass_score"] = np.where(fitted, passed_score, True)
+        out["real_score"][fitted], out["pass_score"][fitted] = score(
+            {k: np.asarray(v)[fitted] for k, v in {**cands, **out}.items()})
     fwhm = {b: float(np.median(data.beam_sigma[det_bands == b])) / fwhm_to_sigma(1.0)
             for b in np.unique(cands["bandpass"])}
     out.update(detection_decision(cands, out, cfg, fwhm))

@@ -97,8 +97,11 @@ def remove_jumps(rows, sample_rate, window=2.0, block=0.25, threshold=8.0):
     changes = _level_changes(rows, n_block, k)
     if not changes.shape[1]:
         return counts
-    for r, (row, d) in enumerate(zip(rows, changes)):
-        for sample, height in _locate(row, d, n_block, k, threshold):
+    spread = mad_std(changes, axis=1)
+    strong = np.any(np.abs(changes) > threshold * spread[:, None], axis=1) & (spread > 0)
+    for r in np.flatnonzero(strong):
+        row = rows[r]
+        for sample, height in _locate(row, changes[r], n_block, k, threshold, spread[r]):
             row[sample:] -= row.dtype.type(height)
             counts[r] += 1
     return counts

@@ -38,10 +38,13 @@ down by its share of the power in the frequencies the filter uses: about S/N^2 /
 n_eff the effective number of such frequencies (~13 Hz x duration at f090), so 1.3 % for S/N 10
 in a 10-minute TOD but far more for very bright sources or short TODs. Detectors where this
 estimate exceeds ``bright_bias`` are filtered a second time, with their PSD re-estimated after
-the bright samples are interpolated over; this costs three more FFTs for those detectors only.
+the bright samples are interpolated over; this costs two more FFTs for those detectors only
+(the data's spectrum is kept from the first pass and weighted again). Each thread filters its
+chunks in buffers it reuses (:meth:`_Spectral.workspace`): the only fresh memory is the S/N.
 """
 from __future__ import annotations
 
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -55,6 +58,28 @@ from so_transients.common.bands import PAPER_KNEE_HZ, nominal_fwhm_arcmin
 from so_transients.common.robust import mad_std
 from so_transients.common.step_config import non_negative, positive
 from so_transients.detect.jumps import remove_jumps
+
+try:        # scipy's own FFTs, writing into arrays given to them
+    from scipy.fft._pocketfft.pypocketfft import c2r as _c2r, r2c as _r2c
+except ImportError:                   # pragma: no cover - another scipy layout
+    _c2r = _r2c = None
+
+
+def rfft_rows(x, out):
+    """``scipy.fft.rfft(x, axis=1)`` written into ``out`` (complex64 for float32 ``x``)."""
+    if _r2c is None:                  # pragma: no cover
+        out[...] = scipy.fft.rfft(x, axis=1, workers=1)
+        return out
+    return _r2c(x, (1,), True, 0, out, 1)
+
+
+def irfft_rows(spec, nfft, out):
+    """``scipy.fft.irfft(spec, n=nfft, axis=1)`` written into ``out``; ``spec`` unchanged."""
+    if _c2r is None:                  # pragma: no cover
+        out[...] = scipy.fft.irfft(spec, n=nfft, axis=1, workers=1)
+        return out
+    return _c2r(spec, (1,), nfft, False, 2, out, 1)
+
 
 @dataclass
 class FilterConfig:
@@ -238,6 +263,7 @@ class _Spectral:
 
     def __init__(self, nsamp, sample_rate, sigma_t, cfg):
         self.nsamp, self.cfg, self.sample_rate = nsamp, cfg, sample_rate
+        self._local = threading.local()       # each thread's buffers (workspace)
         self.nfft = scipy.fft.next_fast_len(nsamp, real=True)
         self.freqs = scipy.fft.rfftfreq(self.nfft, 1.0 / sample_rate)
         self.weight = np.full(len(self.freqs), 2.0)
@@ -279,14 +305,23 @@ class _Spectral:
         bt = binned(w * base * tmpl)
         return base, bt, binned(w * base**2), binned((w * base * tmpl) ** 2)
 
-    def padded(self, nrows):
-        """A zeroed (nrows, nfft) float32 buffer: rows copied into its first ``nsamp``
-        samples are transformed without the copy the FFT would otherwise make to pad them."""
-        return np.zeros((nrows, self.nfft), np.float32)
+    def workspace(self):
+        """This thread's buffers for a chunk of up to ``cfg.chunk_dets`` rows, made on its
+        first chunk and reused for every later one (fresh memory costs several passes over
+        it on first touch): ``x`` and ``x2`` (padded data, their padding zero), ``spec``,
+        ``spec2`` and ``weighted`` (spectra), ``y`` (the filtered rows)."""
+        local = self._local
+        if not hasattr(local, "buffers"):
+            rows, nf = self.cfg.chunk_dets, len(self.freqs)
+            local.buffers = {
+                **{k: np.zeros((rows, self.nfft), np.float32) for k in ("x", "x2", "y")},
+                **{k: np.empty((rows, nf), np.complex64) for k in ("spec", "spec2", "weighted")}}
+        return local.buffers
 
-    def spectrum(self, x):
-        """rfft of the padded rows ``x`` with the edge line removed, and their binned PSD."""
-        spec = scipy.fft.rfft(x, axis=1, workers=1)
+    def spectrum(self, x, out):
+        """rfft of the padded rows ``x`` (into ``out``) with the edge line removed, and their
+        binned PSD."""
+        spec = rfft_rows(x, out)
         n = self.n_line
         a = x[:, :n].mean(axis=1, dtype=float)
         c = x[:, self.nsamp - n:self.nsamp].mean(axis=1, dtype=float) - a
@@ -296,8 +331,9 @@ class _Spectral:
         white = psd @ self.white_weight / self.white_weight.sum()
         return spec, psd, white
 
-    def apply(self, spec, psd, white, sigma_t):
-        """Filter ``spec`` in place; returns ``y`` (rows, nfft) and per row the amplitude
+    def apply(self, spec, psd, white, sigma_t, weighted, y):
+        """Filter ``spec`` (its weighted copy into ``weighted``, which may be ``spec`` itself;
+        the filtered rows into ``y``); returns ``y`` (rows, nfft) and per row the amplitude
         normalization, Var(y), the high-pass frequency and the effective number of frequencies
         the filter uses, ``(sum c_f)^2 / sum c_f^2`` with ``c_f`` each frequency's share of the
         S/N^2 (how much a source's own power can bias its PSD, see :func:`_filter_chunk`)."""
@@ -318,8 +354,8 @@ class _Spectral:
         norm = np.einsum("ik,ik->i", inv, bt[base_index]) / self.nfft
         var_y = np.einsum("ik,ik->i", inv, b2[base_index]) / self.nfft**2
         n_eff = (norm * self.nfft) ** 2 / np.einsum("ik,ik->i", inv**2, bt2[base_index])
-        spectral_ops.weight_spectrum(spec, base, base_index, inv, self.edges)
-        y = scipy.fft.irfft(spec, n=self.nfft, axis=1, workers=1)
+        spectral_ops.weight_spectrum(spec, base, base_index, inv, self.edges, weighted)
+        irfft_rows(weighted, self.nfft, y)
         return y, norm, var_y, fknee, n_eff
 
     def robust_sigma(self, y, grown):
@@ -354,10 +390,10 @@ class _Chunk:
     n_jumps: np.ndarray
 
 
-def _prepare(sp, signal_rows, mask_rows):
-    """Padded float32 copy of the rows, bad (non-finite or masked) samples interpolated over;
-    and the bad samples ((rows, nsamp) bool, or None when there are none)."""
-    buffer = sp.padded(len(signal_rows))
+def _prepare(sp, signal_rows, mask_rows, buffer):
+    """Padded float32 copy of the rows in ``buffer`` (rows, nfft; its padding zero), bad
+    (non-finite or masked) samples interpolated over; and the bad samples ((rows, nsamp)
+    bool, or None when there are none)."""
     x = buffer[:, :sp.nsamp]
     x[...] = signal_rows
     bad = None
@@ -371,46 +407,45 @@ def _prepare(sp, signal_rows, mask_rows):
     return buffer, bad
 
 
-def _filter_rows(sp, x, bad_rows, sigma_t, out_snr, psd=None, white=None):
-    """Filter rows ``x`` into ``out_snr`` (S/N); returns per-row results and peak |S/N|.
+def _filter_rows(sp, spec, noise, bad_rows, sigma_t, out_snr, rows, weighted, y):
+    """Filter the spectra ``spec`` (:meth:`_Spectral.spectrum`) with the noise model ``noise``
+    (binned PSD, white level) into ``out_snr[rows]`` (S/N); returns per-row results and peak
+    |S/N|. ``weighted``, ``y``: buffers for the weighted spectra (``spec`` itself when it
+    is not needed again) and the filtered rows.
 
     ``bad_rows``: {row: grown bad-sample mask} of rows with samples that must not be detected.
-    ``psd``/``white``: use this noise model instead of the rows' own spectrum.
     """
-    spec, own_psd, own_white = sp.spectrum(x)
-    psd = own_psd if psd is None else psd
-    white = own_white if white is None else white
+    psd, white = noise
     dead = white <= 0
     for i, row in bad_rows.items():
         dead[i] |= row.all()
     psd = np.where(dead[:, None], 1.0, psd)
-    y, norm, var_y, fknee, n_eff = sp.apply(spec, psd, np.where(dead, 1.0, white), sigma_t)
-    del spec
+    y, norm, var_y, fknee, n_eff = sp.apply(spec, psd, np.where(dead, 1.0, white), sigma_t,
+                                            weighted, y)
     measured = sp.robust_sigma(y, bad_rows)
     sigma_y = np.sqrt(var_y)
     ok = np.isfinite(measured) & (measured > 0)
     scale = np.where(ok, measured / sigma_y, 1.0)
     factor = np.where(dead, 0.0, 1.0 / (sigma_y * scale)).astype(np.float32)
-    peak = spectral_ops.scale_rows(y, factor, sp.n_edge, out_snr)
+    peak = spectral_ops.scale_rows(y, factor, sp.n_edge, out_snr, rows)
     for i, row in bad_rows.items():
-        out_snr[i, row] = 0.0
-        peak[i] = np.abs(out_snr[i]).max()
+        out_snr[rows[i], row] = 0.0
+        peak[i] = np.abs(out_snr[rows[i]]).max()
     return dict(psd=psd, white=white, dead=dead, fknee=fknee, scale=scale, n_eff=n_eff,
                 snr_factor=factor,
                 sigma_amp=np.where(dead, 0.0, sigma_y * scale / norm)), peak
 
 
-def _source_masked_psd(sp, x, snr, sigma_t):
-    """Binned PSD of rows ``x`` with samples above ``source_mask_snr`` (and 2 sigma_t around
-    them) interpolated over: the noise without the source. Interpolated samples carry no
-    white noise, so the PSD is scaled up by the masked fraction (a constant factor per row
-    changes neither the S/N nor the amplitude, only the white level)."""
+def _source_masked_psd(sp, x, snr, sigma_t, spec):
+    """Binned PSD of rows ``x`` (a copy: overwritten; ``spec`` a buffer for its spectrum)
+    with samples above ``source_mask_snr``
+    (and 2 sigma_t around them) interpolated over: the noise without the source. Interpolated
+    samples carry no white noise, so the PSD is scaled up by the masked fraction (a constant
+    factor per row changes neither the S/N nor the amplitude, only the white level)."""
     width = int(np.ceil(2 * np.max(sigma_t) * sp.sample_rate))
-    masked = _grow(np.abs(snr) > sp.cfg.source_mask_snr, width)
-    xm = x.copy()          # the caller refilters x itself
-    _fill_bad(xm[:, :sp.nsamp], masked)
-    _, psd, white = sp.spectrum(xm)
-    kept = np.clip(1.0 - masked.mean(axis=1), 0.5, 1.0)
+    masked = spectral_ops.interpolate_above(x, snr, np.float32(sp.cfg.source_mask_snr), width)
+    _, psd, white = sp.spectrum(x, spec)
+    kept = np.clip(1.0 - masked / sp.nsamp, 0.5, 1.0)
     return psd / kept[:, None], white / kept
 
 
@@ -423,7 +458,8 @@ def _filter_chunk(sp, signal, mask, sigma_t, sl, out_snr):
     ``bright_bias`` are filtered again with their PSD estimated with the source masked.
     """
     cfg = sp.cfg
-    x, bad = _prepare(sp, signal[sl], None if mask is None else mask[sl])
+    ws = {k: v[:sl.stop - sl.start] for k, v in sp.workspace().items()}
+    x, bad = _prepare(sp, signal[sl], None if mask is None else mask[sl], ws["x"])
     n_jumps = (remove_jumps(x[:, :sp.nsamp], sp.sample_rate, cfg.jump_window,
                             threshold=cfg.jump_threshold)
                if cfg.jump_threshold is not None else np.zeros(len(x), int))
@@ -431,16 +467,23 @@ def _filter_chunk(sp, signal, mask, sigma_t, sl, out_snr):
     bad_rows = ({} if bad is None else
                 {i: _grow(bad[i:i + 1], n_mask)[0] for i in np.flatnonzero(bad.any(axis=1))})
     snr = out_snr[sl]
-    res, peak = _filter_rows(sp, x, bad_rows, sigma_t[sl], snr)
+    spec, psd, white = sp.spectrum(x, ws["spec"])
+    second = cfg.bright_bias is not None
+    # with a second pass in view, the spectra are kept: weighted into a copy
+    res, peak = _filter_rows(sp, spec, (psd, white), bad_rows, sigma_t[sl], snr,
+                             np.arange(len(x)), ws["weighted"] if second else spec, ws["y"])
     bright = (np.flatnonzero((peak**2 / res["n_eff"] > cfg.bright_bias) & ~res["dead"])
-              if cfg.bright_bias is not None else [])
+              if second else [])
     if len(bright):
-        rows, row_sigma_t = x[bright], sigma_t[sl][bright]
-        psd_m, white_m = _source_masked_psd(sp, rows, snr[bright], row_sigma_t)
+        # the same spectra weighted with the PSD of the rows with their source masked
+        n = len(bright)
+        row_sigma_t = sigma_t[sl][bright]
+        noise = _source_masked_psd(sp, np.take(x, bright, axis=0, out=ws["x2"][:n]),
+                                   snr[bright], row_sigma_t, ws["weighted"][:n])
         sub_bad = {j: bad_rows[i] for j, i in enumerate(bright) if i in bad_rows}
-        sub_snr = np.empty((len(bright), sp.nsamp), np.float32)
-        again, _ = _filter_rows(sp, rows, sub_bad, row_sigma_t, sub_snr, psd_m, white_m)
-        snr[bright] = sub_snr
+        rows_spec = np.take(spec, bright, axis=0, out=ws["spec2"][:n])
+        again, _ = _filter_rows(sp, rows_spec, noise, sub_bad, row_sigma_t, snr, bright,
+                                rows_spec, ws["y"][:n])
         for key, value in again.items():
             res[key][bright] = value
     dead = res["dead"]

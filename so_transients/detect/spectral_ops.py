@@ -37,36 +37,39 @@ def remove_line_and_bin(spec, line_a, line_c, f_ones, f_ramp, edges, out):
 
 
 @njit(cache=True, nogil=True)
-def weight_spectrum(spec, base, base_index, inv_psd, edges):
-    """In place, ``spec[i, f] *= base[base_index[i], f] / psd[i, bin(f)]``; DC set to zero."""
+def weight_spectrum(spec, base, base_index, inv_psd, edges, out):
+    """``out[i, f] = spec[i, f] * base[base_index[i], f] / psd[i, bin(f)]``, DC set to zero
+    (``out`` may be ``spec`` itself; else ``spec`` is kept for a second weighting)."""
     nrows, nbins = inv_psd.shape
     for i in range(nrows):
         b = base[base_index[i]]
         for f in range(edges[0]):
-            spec[i, f] = 0.0
+            out[i, f] = 0.0
         for k in range(nbins):
             w = inv_psd[i, k]
             for f in range(edges[k], edges[k + 1]):
-                spec[i, f] = spec[i, f] * (b[f] * w)
+                out[i, f] = spec[i, f] * (b[f] * w)
 
 
 @njit(cache=True, nogil=True, fastmath=True)
-def scale_rows(y, factor, n_edge, out):
-    """``out[i] = y[i, :nsamp] * factor[i]`` with ``n_edge`` samples zeroed at both ends;
-    returns each row's largest ``|out|``."""
-    nrows, nsamp = out.shape
+def scale_rows(y, factor, n_edge, out, rows):
+    """``out[rows[i]] = y[i, :nsamp] * factor[i]`` with ``n_edge`` samples zeroed at both
+    ends; returns each row's largest ``|out|``."""
+    nsamp = out.shape[1]
+    nrows = len(rows)
     peak = np.zeros(nrows)
     n_edge = min(n_edge, nsamp // 2)
     for i in range(nrows):
+        r = rows[i]
         f = factor[i]
         hi = np.float32(0.0)
         lo = np.float32(0.0)
         for s in range(n_edge):
-            out[i, s] = 0.0
-            out[i, nsamp - 1 - s] = 0.0
+            out[r, s] = 0.0
+            out[r, nsamp - 1 - s] = 0.0
         for s in range(n_edge, nsamp - n_edge):
             v = y[i, s] * f
-            out[i, s] = v
+            out[r, s] = v
             hi = max(hi, v)
             lo = min(lo, v)
         peak[i] = max(hi, -lo)
@@ -114,6 +117,40 @@ def interpolate_runs(x, bad):
             for j in range(start, s):
                 frac = (j - start + 1) / span
                 x[i, j] = left + (right - left) * frac
+
+
+@njit(cache=True, nogil=True)
+def interpolate_above(x, snr, threshold, n):
+    """In place, the samples of each row of ``x`` within ``n`` samples of one where
+    ``|snr| > threshold`` replaced as :func:`interpolate_runs` replaces bad ones (the same as
+    ``interpolate_runs(x, dilate_rows(abs(snr) > threshold, n))``, in one pass over ``snr``);
+    returns the number of samples replaced per row."""
+    nrows, nsamp = snr.shape
+    counts = np.zeros(nrows, np.int64)
+    for i in range(nrows):
+        s = 0
+        while s < nsamp:
+            if not abs(snr[i, s]) > threshold:
+                s += 1
+                continue
+            # a run of masked samples: from n before this one to n after the last sample
+            # above the threshold that lies within it (runs that touch are one run)
+            start = max(0, s - n)
+            end = min(nsamp, s + n + 1)
+            t = s + 1
+            while t < min(nsamp, end + n + 1):
+                if abs(snr[i, t]) > threshold:
+                    end = min(nsamp, t + n + 1)
+                t += 1
+            counts[i] += end - start
+            left = x[i, start - 1] if start > 0 else (x[i, end] if end < nsamp else 0.0)
+            right = x[i, end] if end < nsamp else left
+            span = end - start + 1
+            for j in range(start, end):
+                frac = (j - start + 1) / span
+                x[i, j] = left + (right - left) * frac
+            s = end
+    return counts
 
 
 @njit(cache=True, nogil=True, fastmath=True)

@@ -14,11 +14,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from numpy.lib.stride_tricks import sliding_window_view
 
 from so_transients.common.robust import mad_std
 from so_transients.common.step_config import positive
-from so_transients.detect.spectral_ops import dilate_rows
 
 
 def median_last(a):
@@ -89,19 +89,63 @@ def mask_excursions(rows, sample_rate, cfg: ExcursionConfig = ExcursionConfig(),
     rest = median_last(sliding_window_view(m - gain[:, None] * common, k, axis=1))
     half = k // 2
     t_rest = block_times(n, n_block)[half:n - half]
-    t = np.arange(nsamp)
-    common_s = np.interp(t, block_times(n, n_block), common).astype(np.float32)
+    common_s = np.interp(np.arange(nsamp), block_times(n, n_block), common).astype(np.float32)
     grow = max(1, int(round(cfg.buffer * sample_rate)))
+    sub = np.arange(0, nsamp, 7)          # the spread is measured on every 7th sample
+    base = np.empty(nsamp)
     for r in range(nrows):
-        base = gain[r] * common_s + np.interp(t, t_rest, rest[r]).astype(np.float32)
-        excess = rows[r] - base
-        spread = mad_std(excess[::7])
-        if not spread > 0:
-            continue
-        hit = np.abs(excess) > cfg.threshold * spread
-        if not hit.any():
-            continue
-        hit = dilate_rows(hit[None, :], grow)[0]
-        rows[r, hit] = base[hit]
-        counts[r] = int(hit.sum())
+        spread = mad_std(rows[r, sub] - (gain[r] * common_s[sub] + np.interp(
+            sub, t_rest, rest[r]).astype(np.float32)))
+        if spread > 0:
+            _baseline(gain[r], common_s, t_rest, rest[r], base)
+            counts[r] = _replace_excursions(rows[r], base, cfg.threshold * spread, grow)
     return counts
+
+
+@njit(cache=True, nogil=True)
+def _baseline(gain, common_s, t_rest, rest, out):
+    """A row's baseline at every sample into ``out`` (float64): ``gain x common_s`` plus
+    ``rest`` linearly interpolated from the increasing sample positions ``t_rest``, exactly
+    as ``np.interp`` does and then rounded to float32."""
+    last = len(t_rest) - 1
+    j = 0
+    for s in range(len(out)):
+        x = float(s)
+        if x <= t_rest[0]:
+            value = rest[0]
+        elif x >= t_rest[last]:
+            value = rest[last]
+        else:
+            while t_rest[j + 1] <= x:
+                j += 1
+            if t_rest[j] == x:
+                value = rest[j]
+            else:
+                slope = (rest[j + 1] - rest[j]) / (t_rest[j + 1] - t_rest[j])
+                value = slope * (x - t_rest[j]) + rest[j]
+        out[s] = gain * np.float64(common_s[s]) + np.float64(np.float32(value))
+
+
+@njit(cache=True, nogil=True)
+def _replace_excursions(row, base, limit, grow):
+    """In place, the samples of ``row`` more than ``limit`` from ``base``, and ``grow``
+    samples around them, set to ``base``; returns how many (one pass over the row)."""
+    nsamp = len(row)
+    count = 0
+    s = 0
+    while s < nsamp:
+        if not abs(np.float64(row[s]) - base[s]) > limit:
+            s += 1
+            continue
+        start = max(0, s - grow)
+        end = min(nsamp, s + grow + 1)
+        t = s + 1
+        while t < min(nsamp, end + grow):
+            if abs(np.float64(row[t]) - base[t]) > limit:
+                end = min(nsamp, t + grow + 1)
+            t += 1
+        for j in range(start, end):
+            row[j] = np.float32(base[j])
+        count += end - start
+        s = end
+    return count

@@ -148,3 +148,49 @@ def test_a_crossing_is_hidden_from_the_pca_model_and_the_atmosphere_is_not():
     untouched[int(149.0 * FS):int(151.0 * FS)] = False
     # 5 sigma excursions of Gaussian noise: 6e-7 of the samples, so nearly every row untouched
     assert np.mean(x[:, untouched] == clean[:, untouched]) > 0.999
+
+
+def _mask_excursions_numpy(rows, sample_rate, cfg):
+    """mask_excursions' per-row loop written with numpy (its former form)."""
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    from so_transients.common.robust import mad_std
+    from so_transients.detect.common_mode import block_medians, block_times, common_share, \
+        median_last
+    from so_transients.detect.spectral_ops import dilate_rows
+    nrows, nsamp = rows.shape
+    counts = np.zeros(nrows, int)
+    n_block = max(1, int(round(cfg.block * sample_rate))) | 1
+    k = max(3, int(round(cfg.window / cfg.block))) | 1
+    n = nsamp // n_block
+    m = block_medians(rows, n_block, cfg.chunk_dets)
+    common, gain = common_share(m, np.ptp(m, axis=1) > 0)
+    rest = median_last(sliding_window_view(m - gain[:, None] * common, k, axis=1))
+    t_rest = block_times(n, n_block)[k // 2:n - k // 2]
+    t = np.arange(nsamp)
+    common_s = np.interp(t, block_times(n, n_block), common).astype(np.float32)
+    grow = max(1, int(round(cfg.buffer * sample_rate)))
+    for r in range(nrows):
+        base = gain[r] * common_s + np.interp(t, t_rest, rest[r]).astype(np.float32)
+        excess = rows[r] - base
+        spread = mad_std(excess[::7])
+        hit = np.abs(excess) > cfg.threshold * spread if spread > 0 else np.zeros(nsamp, bool)
+        hit = dilate_rows(hit[None, :], grow)[0]
+        rows[r, hit] = base[hit]
+        counts[r] = int(hit.sum())
+    return counts
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_masking_excursions_in_one_pass_is_the_numpy_loop(seed):
+    rng = np.random.default_rng(seed)
+    x = noise(rng, 40) + np.cumsum(rng.normal(0, 30.0, N)).astype(np.float32)
+    for _ in range(60):                 # crossings and spikes anywhere, the ends included
+        d, s = rng.integers(40), rng.choice([0, 3, N - 5, int(rng.integers(N))])
+        x[d, s:s + 40] += rng.uniform(5, 40) * SIGMA
+    x[5] = 0.0                          # a channel recording nothing
+    cfg = ExcursionConfig(threshold=5.0, buffer=0.2)
+    expected, got = x.copy(), x.copy()
+    counts = _mask_excursions_numpy(expected, FS, cfg)
+    assert np.array_equal(mask_excursions(got, FS, cfg), counts) and counts.sum() > 60 * 40
+    assert np.array_equal(got, expected)

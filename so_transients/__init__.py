@@ -9,6 +9,7 @@ in a context.yaml so that sotodlib (and the site pipeline's spawned workers) imp
 from importlib.metadata import version
 
 from so_transients.preprocess import processes  # noqa: F401  registers the transient_* preprocess steps
+from so_transients.preprocess import sotodlib_steps  # noqa: F401  and the chunked standard ones
 from so_transients.io.loader import register as _register_loader
 
 __version__ = version(__name__)   # pyproject.toml holds the one version number

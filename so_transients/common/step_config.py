@@ -111,3 +111,12 @@ def share(step, **values):
     for key, value in values.items():
         if value is not None and not 0 < value <= 1:
             raise ConfigError(f"{step}: {key} is a share and must be in (0, 1], got {value}")
+
+
+@dataclasses.dataclass
+class ChunkConfig:
+    """The one key of ``transient_fourier_filter`` and ``transient_glitches`` that is not
+    sotodlib's (all their other keys are those of ``fourier_filter`` and ``glitches``)."""
+
+    chunk_dets: int = 32        # detectors filtered at a time (a chunk's FFT buffers: 50 MB
+    #                             each for one hour at f090)

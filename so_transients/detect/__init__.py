@@ -9,5 +9,10 @@
   several crossings; :mod:`.fit_candidates`: a group's candidates fitted
   (``transient_fit``); :mod:`.motion`: detections whose position drifts
 
+For the standard steps before the search, on real wafers: :mod:`.jumps` (readout jumps,
+``transient_jumps``), :mod:`.common_mode` (a wafer's common mode; crossings hidden from the
+PCA, ``transient_pca_mask``) and :mod:`.pca` (sotodlib's PCA filter in blocks of samples,
+``transient_pca_filter``).
+
 Imports only from :mod:`so_transients.common`.
 """

@@ -1,7 +1,11 @@
 """The transient steps as sotodlib preprocess processes: thin wrappers around the core.
 
-- :mod:`.processes`: ``transient_filter``, ``transient_find``, ``transient_cuts``,
-  ``transient_significance``, ``transient_fit`` (registered on import)
+- :mod:`.processes`: ``transient_jumps``, ``transient_pca_mask``, ``transient_filter``,
+  ``transient_find``, ``transient_cuts``, ``transient_significance``, ``transient_fit``
+  (registered on import)
+- :mod:`.sotodlib_steps`: sotodlib's ``fourier_filter``, ``glitches`` and ``pca_filter`` a
+  chunk at a time (``transient_fourier_filter``, ``transient_glitches``,
+  ``transient_pca_filter``)
 - :mod:`.step_fields`: the AxisManager fields each step reads
 - :mod:`.slot_storage`: candidate tables stored on the detector axis of the archive
 - :mod:`.plots`: one figure per detection

@@ -16,6 +16,9 @@ _POINTING_OPTIONAL = ("boresight.roll", BORE_Q, "obs_info.obs_id")
 REQUIRED = {
     "transient_jumps": ("signal", "timestamps"),
     "transient_pca_mask": ("timestamps",),
+    "transient_pca_filter": (),
+    "transient_fourier_filter": ("timestamps",),
+    "transient_glitches": ("timestamps",),
     "transient_filter": ("signal", "timestamps", "boresight.az", "boresight.el", "det_info"),
     "transient_find": ("transient_snr", "transient_filter.bandpass",
                        "transient_filter.beam_sigma") + _POINTING,

@@ -8,11 +8,12 @@ into them (for the processes, the campaign, the events command and the documenta
 from __future__ import annotations
 
 from so_transients.coherent.config import FIND_CONFIGS
-from so_transients.common.step_config import from_yaml_parts
+from so_transients.common.step_config import ChunkConfig, from_yaml_parts
 from so_transients.detect.cuts import CutsConfig
 from so_transients.detect.common_mode import ExcursionConfig
 from so_transients.detect.fit import FitConfig
 from so_transients.detect.jumps import JumpConfig
+from so_transients.detect.pca import PcaConfig
 from so_transients.detect.matched_filter import FilterConfig
 from so_transients.significance.far import SignificanceConfig
 
@@ -20,6 +21,9 @@ from so_transients.significance.far import SignificanceConfig
 STEP_CONFIGS = {
     "transient_jumps": (JumpConfig,),
     "transient_pca_mask": (ExcursionConfig,),
+    "transient_pca_filter": (PcaConfig,),
+    "transient_fourier_filter": (ChunkConfig,),
+    "transient_glitches": (ChunkConfig,),
     "transient_filter": (FilterConfig,),
     "transient_find": FIND_CONFIGS,
     "transient_cuts": (CutsConfig,),

@@ -30,7 +30,8 @@ def test_a_negative_or_nan_value_is_refused_naming_step_and_key(step, key, integ
         entry = {"name": step, "calc": {key: value}}
         if step == "transient_filter":
             entry = {"name": step, "process": {key: value}, "calc": True}
-        elif step in ("transient_jumps", "transient_pca_mask"):
+        elif step in ("transient_jumps", "transient_pca_mask", "transient_pca_filter",
+                      "transient_fourier_filter"):
             entry = {"name": step, "process": {key: value}}
         with pytest.raises(ConfigError) as info:
             Pipeline([entry])

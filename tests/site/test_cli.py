@@ -52,7 +52,8 @@ def test_site_config_writes_the_production_search_by_default(dataset):
     pipe = steps(dataset / "preprocess.yaml")
     assert pipe["transient_find"]["calc"]["mode"] == "coherent"
     assert pipe["transient_significance"]["calc"]["max_far"] == 0.005
-    assert {"fourier_filter", "glitches", "noise", "pca_filter"} <= set(pipe)
+    assert {"transient_fourier_filter", "transient_glitches", "noise",
+            "transient_pca_filter"} <= set(pipe)
 
 
 def test_site_config_paper_mode_and_overrides(dataset, tmp_path):

@@ -1,0 +1,96 @@
+"""The chunked standard steps against sotodlib's own, through sotodlib's Pipeline on a real
+wafer (every imperfection at once, studies/configs/real_wafer.yaml, two seeds): the same
+filtered signal, glitch flags and significances, to the bit."""
+import numpy as np
+import pytest
+import yaml
+from sotodlib import core
+from sotodlib.preprocess import Pipeline
+
+from so_transients.campaign.real_wafer import simulate_seed
+from so_transients.common.step_config import ConfigError
+from so_transients.site.pipeline import PRODUCTION
+
+PIPE = yaml.safe_load(PRODUCTION.read_text())["process_pipe"]
+NAMES = [step["name"] for step in PIPE]
+#: the production config's time-constant deconvolution, glitch flags and low-pass copy
+TIMECONST = NAMES.index("transient_fourier_filter")
+GLITCHES = NAMES.index("transient_glitches")
+LOW_PASS = len(NAMES) - 1 - NAMES[::-1].index("transient_fourier_filter")
+
+
+def as_sotodlibs(step):
+    """The same config block for sotodlib's step."""
+    return dict(step, name=step["name"].replace("transient_", ""))
+
+
+@pytest.fixture(scope="module", params=[3, 9])
+def wafer(request, tmp_path_factory):
+    """Five minutes of a real wafer after the production config's steps before the
+    time-constant deconvolution (NaN detectors and samples still in)."""
+    sim = simulate_seed(tmp_path_factory.mktemp("steps"), seed=request.param, duration=300.0,
+                        flares=[])
+    aman = core.Context(str(sim.context)).get_obs(sim.obs_ids[0])
+    Pipeline(PIPE[:TIMECONST]).run(aman)
+    return aman
+
+
+def twice(aman, step):
+    """``step`` run by sotodlib's version and ours on copies of ``aman``: both AxisManagers
+    and their archive entries."""
+    out = []
+    for block in (as_sotodlibs(step), step):
+        copy = aman.copy()
+        for name in ("signal", "lpf_signal"):
+            if name in aman._fields:
+                copy.move(name, None)
+                copy.wrap(name, np.array(aman[name]), [(0, "dets"), (1, "samps")])
+        proc = Pipeline([block]).run(copy)[0]
+        out.append((copy, proc))
+    return out
+
+
+@pytest.mark.slow
+def test_the_time_constant_deconvolution_is_sotodlibs(wafer):
+    (theirs, _), (ours, _) = twice(wafer, PIPE[TIMECONST])
+    assert np.isnan(theirs.signal).any()          # the lost detector and the NaN stretch
+    assert np.array_equal(np.asarray(ours.signal), np.asarray(theirs.signal), equal_nan=True)
+
+
+@pytest.mark.slow
+def test_the_low_passed_copy_is_sotodlibs(wafer):
+    step = PIPE[LOW_PASS]
+    assert step["wrap_name"] == "lpf_signal"
+    (theirs, _), (ours, _) = twice(wafer, step)
+    assert np.array_equal(np.asarray(ours.lpf_signal), np.asarray(theirs.lpf_signal),
+                          equal_nan=True)
+    assert np.array_equal(np.asarray(ours.signal), np.asarray(wafer.signal), equal_nan=True)
+
+
+@pytest.mark.slow
+def test_the_glitch_flags_and_significances_are_sotodlibs(wafer):
+    (theirs, proc_theirs), (ours, proc_ours) = twice(wafer, PIPE[GLITCHES])
+    a, b = proc_theirs.glitches, proc_ours.glitches
+    assert a.glitch_detection.nnz > 100                 # cosmic rays on a real wafer
+    assert all(np.array_equal(x.ranges(), y.ranges())
+               for x, y in zip(a.glitch_flags, b.glitch_flags))
+    assert (a.glitch_detection != b.glitch_detection).nnz == 0
+    # sotodlib's select on them: the same detectors kept
+    select = {"max_n_glitch": 2, "sig_glitch": 10, "max_t_frac": 0.01}
+    keep = [Pipeline.PIPELINE[name]({"name": name, "calc": {}, "select": select})
+            .select(theirs, proc, in_place=False)
+            for name, proc in (("glitches", proc_theirs), ("transient_glitches", proc_ours))]
+    assert 0 < keep[0].sum() < len(keep[0]) and np.array_equal(*keep)
+
+
+def test_chunks_must_be_a_positive_number_of_detectors():
+    for name, block in (("transient_fourier_filter", "process"),
+                        ("transient_glitches", "calc")):
+        with pytest.raises(ConfigError, match=f"{name}: chunk_dets"):
+            Pipeline([{"name": name, block: {"chunk_dets": 0}}])
+
+
+def test_an_unknown_filter_is_refused_when_the_pipeline_is_built():
+    with pytest.raises(ConfigError, match="no filter 'low_pass_butter5'"):
+        Pipeline([{"name": "transient_fourier_filter",
+                   "process": {"filt_function": "low_pass_butter5"}}])

@@ -22,6 +22,7 @@ from astropy.table import Table
 from so_transients.campaign.config import load_campaign
 from so_transients.campaign.run import run_campaign
 from so_transients.common.parallel import executor
+from so_transients.preprocess.sotodlib_steps import sotodlib_name
 
 ROOT = Path(__file__).resolve().parent.parent
 BASE = ROOT / "studies" / "configs" / "campaign_quick_realistic.yaml"
@@ -58,7 +59,7 @@ def preprocess_config(path, out, deconvolve):
     with open(path) as f:
         cfg = yaml.safe_load(f)
     cfg["process_pipe"] = [s for s in cfg["process_pipe"] if not (
-        s["name"] == "fourier_filter"
+        sotodlib_name(s["name"]) == "fourier_filter"
         and (s.get("process") or {}).get("filt_function") == "timeconst_filter")]
     derived = Path(out) / "preprocess_no_timeconst.yaml"
     derived.write_text(yaml.safe_dump(cfg, sort_keys=False))

@@ -41,6 +41,7 @@ from sotodlib import core
 from sotodlib.preprocess import Pipeline
 
 from so_transients.preprocess import step_fields
+from so_transients.preprocess.sotodlib_steps import sotodlib_name
 from so_transients.detect.find import FindConfig
 from so_transients.detect.fit import FitConfig, FitInputs, measure_error_scale
 from so_transients.campaign.noise_model import NoiseModel
@@ -91,11 +92,13 @@ def simulate_group(sim_config, root, group: Group, digest: str) -> str:
 
 def deconvolves_time_constants(standard_steps) -> bool:
     """Whether the standard steps deconvolve detector time constants (sotodlib's
-    ``fourier_filter`` with ``timeconst_filter`` inverted)."""
+    ``fourier_filter``, or its chunked ``transient_fourier_filter``, with ``timeconst_filter``
+    inverted)."""
     for step in standard_steps:
         process = step.get("process") or {}
         params = process.get("filter_params") or {} if isinstance(process, dict) else {}
-        if (step["name"] == "fourier_filter" and process.get("filt_function") == "timeconst_filter"
+        if (sotodlib_name(step["name"]) == "fourier_filter"
+                and process.get("filt_function") == "timeconst_filter"
                 and params.get("invert", False)):
             return True
     return False

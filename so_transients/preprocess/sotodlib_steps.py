@@ -34,6 +34,17 @@ from so_transients.preprocess.step_fields import GroupName, require
 
 log = logging.getLogger(__name__)
 
+#: sotodlib's step of each chunked equivalent here (the same keys and results)
+SOTODLIB_STEP = {"transient_pca_filter": "pca_filter",
+                 "transient_fourier_filter": "fourier_filter",
+                 "transient_glitches": "glitches"}
+
+
+def sotodlib_name(step_name):
+    """The sotodlib step a config's step name runs: itself, or the one a chunked equivalent
+    stands for."""
+    return SOTODLIB_STEP.get(step_name, step_name)
+
 
 def chunk_setting(step, cfg):
     """``chunk_dets`` popped from the config block ``cfg`` of ``step`` (a ConfigError names

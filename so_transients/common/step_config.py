@@ -118,5 +118,5 @@ class ChunkConfig:
     """The one key of ``transient_fourier_filter`` and ``transient_glitches`` that is not
     sotodlib's (all their other keys are those of ``fourier_filter`` and ``glitches``)."""
 
-    chunk_dets: int = 32        # detectors filtered at a time (a chunk's FFT buffers: 50 MB
-    #                             each for one hour at f090)
+    chunk_dets: int = 32        # detectors filtered at a time (a chunk's FFT buffers: about
+    #                             100 MB each for one hour at f090)

@@ -15,10 +15,13 @@ make the site pipeline's peak memory (docs/results/performance.md). Here:
 
 The two per-detector steps call sotodlib's own functions on a light AxisManager of each
 chunk (its detectors' signal and the fields the functions read), so they give sotodlib's
-result for every detector.
+result for every detector to float32 rounding (FFTW may round a row differently in batches
+of another size or with other threads; on the tested wafers, with 32 detectors a chunk and
+one thread, to the bit).
 """
 from __future__ import annotations
 
+import inspect
 import logging
 
 import numpy as np
@@ -77,11 +80,13 @@ def chunk_aman(aman, sl, fields):
         name = parts[-1]
         value = src[name]
         axes = src._assignments.get(name, ())
-        if axes and axes[0] == aman.dets.name:
+        if isinstance(value, core.AxisManager):
+            if aman.dets.name in value._axes:
+                value = value.restrict(aman.dets.name, dets.vals, in_place=False)
+            dst.wrap(name, value)
+        elif axes and axes[0] == aman.dets.name:
             dst.wrap(name, value[sl], [(0, aman.dets.name)] + [
                 (i, a) for i, a in enumerate(axes) if i and a is not None])
-        elif isinstance(value, core.AxisManager):
-            dst.wrap(name, value)
         else:
             dst.wrap(name, value, [(i, a) for i, a in enumerate(axes) if a is not None])
     return sub
@@ -131,20 +136,27 @@ class TransientPcaFilter(_Preprocess):
         return aman, proc_aman
 
 
-def _field_paths(aman, params):
-    """The values of ``params`` (a filter's parameters) that name fields of ``aman`` (such as
-    ``timeconst: det_cal.tau_eff``)."""
+def _has_field(aman, path):
+    node = aman
+    for part in path.split("."):
+        if not hasattr(node, "_fields") or part not in node._fields:
+            return False
+        node = node[part]
+    return True
+
+
+def _field_paths(aman, filter_name, params):
+    """The fields of ``aman`` sotodlib's filter ``filter_name`` may read with ``params``: each
+    of its arguments given or defaulting to a string that names a field (``timeconst:
+    det_cal.tau_eff``, ``tau_name='timeconst'``), or left None where a field of the argument's
+    own name stands in (``timeconst``, ``iir_params``)."""
+    params = params or {}
     out = []
-    for value in (params or {}).values():
-        if isinstance(value, str):
-            node, found = aman, True
-            for part in value.split("."):
-                if not hasattr(node, "_fields") or part not in node._fields:
-                    found = False
-                    break
-                node = node[part]
-            if found:
-                out.append(value)
+    for name, arg in inspect.signature(getattr(tod_ops.filters, filter_name)).parameters.items():
+        value = params.get(name, arg.default)
+        path = name if value is None else value
+        if isinstance(path, str) and _has_field(aman, path):
+            out.append(path)
     return out
 
 
@@ -153,11 +165,14 @@ class TransientFourierFilter(FourierFilter):
     """sotodlib's ``fourier_filter`` step (the same keys and filters) run on chunks of
     ``chunk_dets`` detectors (``process:`` key, :class:`ChunkConfig`), each chunk with
     sotodlib's ``tod_ops.filters.fourier_filter`` and FFT buffers reused from chunk to chunk:
-    the same filtered signal, without the step's whole-signal FFT buffers and per-detector
-    filter responses (for the time-constant deconvolution of one hour of an f090 wafer-band,
-    sotodlib's step peaks at 3.2 times the signal). Filters whose parameters name a field
-    (``timeconst: det_cal.tau_eff``) read it for the chunk's detectors; ``noise_fit_array`` is
-    not supported (use ``fourier_filter``).
+    the same filtered signal (to float32 rounding), without the step's whole-signal FFT
+    buffers and per-detector filter responses (for the time-constant deconvolution of one
+    hour of an f090 wafer-band, sotodlib's step peaks at 3.2 times the signal). Filters read
+    the fields their arguments name (``timeconst: det_cal.tau_eff``, or a field of the
+    argument's own name, ``iir_params``) for the chunk's detectors; ``noise_fit_array`` is
+    not supported (use ``fourier_filter``), nor a signal stored as (samps, dets). With
+    ``wrap_name`` equal to ``signal_name`` the signal is filtered in place (sotodlib's step
+    wraps a new array): anything sharing the array sees the filtered signal.
 
     Config block (in place of ``fourier_filter``)::
 
@@ -199,11 +214,13 @@ class TransientFourierFilter(FourierFilter):
         where = f"{self.name}: {GroupName(aman)}"
         require(aman, self.name, [self.signal_name])
         filt = self._filter()
-        fields = [self.signal_name] + [path for spec in self.filter_specs for path in
-                                       _field_paths(aman, spec.get("filter_params"))]
-        if any(spec["name"] == "iir_filter" for spec in self.filter_specs):
-            fields.append("iir_params")
+        fields = list(dict.fromkeys([self.signal_name] + [
+            path for spec in self.filter_specs
+            for path in _field_paths(aman, spec["name"], spec.get("filter_params"))]))
         signal = aman[self.signal_name]
+        if tuple(aman._assignments[self.signal_name]) != (aman.dets.name, aman.samps.name):
+            raise ValueError(f"{where}: {self.signal_name} is not (dets, samps); use "
+                             f"fourier_filter")
         ndet, nsamp = signal.shape
         in_place = self.wrap_name == self.signal_name and signal.dtype == np.float32
         out = signal if in_place else np.empty((ndet, nsamp), np.float32)

@@ -171,7 +171,9 @@ def _mask_excursions_numpy(rows, sample_rate, cfg):
     common_s = np.interp(t, block_times(n, n_block), common).astype(np.float32)
     grow = max(1, int(round(cfg.buffer * sample_rate)))
     for r in range(nrows):
-        base = gain[r] * common_s + np.interp(t, t_rest, rest[r]).astype(np.float32)
+        # float64 (numpy 2 promotes so; numpy 1 would keep float32)
+        base = np.float64(gain[r]) * common_s.astype(np.float64) + np.interp(
+            t, t_rest, rest[r]).astype(np.float32).astype(np.float64)
         excess = rows[r] - base
         spread = mad_std(excess[::7])
         hit = np.abs(excess) > cfg.threshold * spread if spread > 0 else np.zeros(nsamp, bool)

@@ -74,10 +74,17 @@ def test_a_nan_detector_is_left_out_not_spread(caplog):
     assert np.abs(ours[keep] - theirs).max() < TOLERANCE * np.std(theirs)
 
 
-def test_too_few_finite_detectors_is_an_error_naming_the_group():
+def test_too_few_finite_detectors_is_an_error_naming_the_step_and_group():
     signal = np.zeros((2, 100), np.float32)
     with pytest.raises(ValueError, match="2 detectors .* fewer than the 3 PCA modes"):
         pca_filter(signal, signal, 3)
+    aman = wafer()
+    aman.lpf_signal[3:] = np.nan                    # 3 finite detectors, 3 modes: still runs
+    run(aman, "transient_pca_filter")
+    aman.lpf_signal[2] = np.nan
+    with pytest.raises(ValueError, match=r"transient_pca_filter: unknown observation "
+                                         r"\(all detectors\): 2 detectors"):
+        run(aman, "transient_pca_filter")
 
 
 @pytest.mark.slow

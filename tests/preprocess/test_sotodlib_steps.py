@@ -1,6 +1,7 @@
 """The chunked standard steps against sotodlib's own, through sotodlib's Pipeline on a real
 wafer (every imperfection at once, studies/configs/real_wafer.yaml, two seeds): the same
-filtered signal, glitch flags and significances, to the bit."""
+filtered signal, glitch flags and significances, to float32 rounding (FFTW may round a row
+differently in batches of another size or with other threads; here they are bit-identical)."""
 import numpy as np
 import pytest
 import yaml
@@ -35,6 +36,14 @@ def wafer(request, tmp_path_factory):
     return aman
 
 
+def same_to_float32(ours, theirs):
+    """Equal NaN, and equal values to float32 rounding of each detector's scale."""
+    ours, theirs = np.asarray(ours), np.asarray(theirs)
+    assert np.array_equal(np.isnan(ours), np.isnan(theirs))
+    scale = np.nanmax(np.abs(theirs), axis=1, keepdims=True)
+    assert np.nanmax(np.abs(ours - theirs) / np.where(scale > 0, scale, 1.0)) < 1e-6
+
+
 def twice(aman, step):
     """``step`` run by sotodlib's version and ours on copies of ``aman``: both AxisManagers
     and their archive entries."""
@@ -54,7 +63,7 @@ def twice(aman, step):
 def test_the_time_constant_deconvolution_is_sotodlibs(wafer):
     (theirs, _), (ours, _) = twice(wafer, PIPE[TIMECONST])
     assert np.isnan(theirs.signal).any()          # the lost detector and the NaN stretch
-    assert np.array_equal(np.asarray(ours.signal), np.asarray(theirs.signal), equal_nan=True)
+    same_to_float32(ours.signal, theirs.signal)
 
 
 @pytest.mark.slow
@@ -62,8 +71,7 @@ def test_the_low_passed_copy_is_sotodlibs(wafer):
     step = PIPE[LOW_PASS]
     assert step["wrap_name"] == "lpf_signal"
     (theirs, _), (ours, _) = twice(wafer, step)
-    assert np.array_equal(np.asarray(ours.lpf_signal), np.asarray(theirs.lpf_signal),
-                          equal_nan=True)
+    same_to_float32(ours.lpf_signal, theirs.lpf_signal)
     assert np.array_equal(np.asarray(ours.signal), np.asarray(wafer.signal), equal_nan=True)
 
 
@@ -72,9 +80,15 @@ def test_the_glitch_flags_and_significances_are_sotodlibs(wafer):
     (theirs, proc_theirs), (ours, proc_ours) = twice(wafer, PIPE[GLITCHES])
     a, b = proc_theirs.glitches, proc_ours.glitches
     assert a.glitch_detection.nnz > 100                 # cosmic rays on a real wafer
-    assert all(np.array_equal(x.ranges(), y.ranges())
-               for x, y in zip(a.glitch_flags, b.glitch_flags))
-    assert (a.glitch_detection != b.glitch_detection).nnz == 0
+    assert a.glitch_detection.shape == b.glitch_detection.shape
+    assert len(a.glitch_flags) == len(b.glitch_flags) == wafer.dets.count
+    # a sample at the threshold may flip with float32 rounding: at most 1 in 1000 of them
+    flagged = [x.mask() != y.mask() for x, y in zip(a.glitch_flags, b.glitch_flags)]
+    assert np.sum(flagged) <= 1e-3 * sum(x.mask().sum() for x in a.glitch_flags)
+    both = (a.glitch_detection != 0).multiply(b.glitch_detection != 0)
+    assert both.nnz >= 0.999 * a.glitch_detection.nnz
+    diff = abs(a.glitch_detection - b.glitch_detection).multiply(both)
+    assert diff.max() <= 1e-5 * abs(a.glitch_detection).max()
     # sotodlib's select on them: the same detectors kept
     select = {"max_n_glitch": 2, "sig_glitch": 10, "max_t_frac": 0.01}
     keep = [Pipeline.PIPELINE[name]({"name": name, "calc": {}, "select": select})
@@ -94,3 +108,35 @@ def test_an_unknown_filter_is_refused_when_the_pipeline_is_built():
     with pytest.raises(ConfigError, match="no filter 'low_pass_butter5'"):
         Pipeline([{"name": "transient_fourier_filter",
                    "process": {"filt_function": "low_pass_butter5"}}])
+
+
+#: timeconst_filter without ``timeconst`` reads the field ``timeconst``; two filters naming one
+#: field read it once
+FILTER_CHAINS = [
+    [{"name": "timeconst_filter", "filter_params": {"invert": True}}],
+    [{"name": "timeconst_filter", "filter_params": {"timeconst": "timeconst", "invert": True}},
+     {"name": "timeconst_filter", "filter_params": {"timeconst": "timeconst", "invert": True}}],
+]
+
+
+@pytest.mark.parametrize("filters", FILTER_CHAINS)
+def test_a_filter_reads_the_fields_its_arguments_name_or_default_to(filters):
+    """As sotodlib's step, with a chunk size that does not divide the detectors."""
+    rng = np.random.default_rng(5)
+    ndet, nsamp = 11, 4000
+    aman = core.AxisManager(core.LabelAxis("dets", [f"d{i}" for i in range(ndet)]),
+                            core.OffsetAxis("samps", nsamp))
+    aman.wrap("timestamps", np.arange(nsamp) / 200.0, [(0, "samps")])
+    aman.wrap("signal", rng.standard_normal((ndet, nsamp)).astype(np.float32),
+              [(0, "dets"), (1, "samps")])
+    aman.wrap("timeconst", rng.uniform(0.001, 0.005, ndet), [(0, "dets")])
+    aman.wrap("iir_params", core.AxisManager())           # Pipeline.run reads it
+    out = []
+    for name, extra in (("fourier_filter", {}), ("transient_fourier_filter", {"chunk_dets": 4})):
+        copy = aman.copy()
+        copy.move("signal", None)
+        copy.wrap("signal", np.array(aman.signal), [(0, "dets"), (1, "samps")])
+        Pipeline([{"name": name, "process": {"filters": filters, **extra}}]).run(copy)
+        out.append(np.asarray(copy.signal))
+    assert not np.allclose(out[0], aman.signal, atol=1e-3)   # it filtered
+    same_to_float32(out[1], out[0])

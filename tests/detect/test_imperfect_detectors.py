@@ -149,14 +149,33 @@ def test_a_nan_detector_is_cut_before_the_pca_and_the_flare_is_found(long_datase
 
 
 def test_nan_spread_to_every_detector_fails_the_group_visibly(long_dataset, tmp_path):
-    """Without the cut, sotodlib's PCA spreads one NaN detector to all: transient_filter
+    """Without the cut, sotodlib's own PCA spreads one NaN detector to all: transient_filter
     refuses the group, naming it, instead of returning nothing."""
     aman = load(long_dataset)
     aman.signal[7, 1000:1050] = np.nan
-    steps = [s for s in shipped_steps() if s["name"] != "noise"]
+    steps = [dict(s, name="pca_filter") if s["name"] == "transient_pca_filter" else s
+             for s in shipped_steps() if s["name"] != "noise"]
     with pytest.raises(ValueError, match="no usable detector") as err:
         Pipeline(steps, plot_dir=str(tmp_path)).run(aman)
     assert aman.obs_info.obs_id in str(err.value) and "f090" in str(err.value)
+
+
+def test_without_the_cut_the_shipped_pca_leaves_the_nan_detector_out_visibly(
+        long_dataset, tmp_path, caplog):
+    """The shipped config's transient_pca_filter leaves a detector with NaN samples out of the
+    PCA, warning with the observation and band, instead of spreading them: the flare is found."""
+    dataset = long_dataset
+    aman = load(dataset)
+    aman.signal[7, 1000:1050] = np.nan
+    steps = [s for s in shipped_steps() if s["name"] != "noise"]
+    assert "transient_pca_filter" in [s["name"] for s in steps]
+    with caplog.at_level("WARNING"):
+        proc = Pipeline(steps, plot_dir=str(tmp_path)).run(aman)[0]
+    warned = [r.getMessage() for r in caplog.records if "left out of the PCA" in r.getMessage()]
+    assert len(warned) == 1 and aman.obs_info.obs_id in warned[0] and "f090" in warned[0]
+    assert "1 of 860 detectors" in warned[0]
+    table = proc_table(proc, aman.obs_info.obs_id)
+    assert np.any(np.abs(table["t_peak"][table["detected"]] - dataset.flares["t_peak"][0]) < 0.5)
 
 
 def test_sidelobes_of_a_bright_negative_flare_are_cut(long_dataset):

@@ -98,6 +98,19 @@ def dilate_rows(mask, n):
 
 
 @njit(cache=True, nogil=True)
+def _fill_run(x, i, start, end, nsamp):
+    """Samples ``start .. end - 1`` of row ``i`` of ``x`` replaced by the line between their
+    good neighbours (the nearest good value at the ends of the row's ``nsamp`` samples; zeros
+    when there is none)."""
+    left = x[i, start - 1] if start > 0 else (x[i, end] if end < nsamp else 0.0)
+    right = x[i, end] if end < nsamp else left
+    span = end - start + 1
+    for j in range(start, end):
+        frac = (j - start + 1) / span
+        x[i, j] = left + (right - left) * frac
+
+
+@njit(cache=True, nogil=True)
 def interpolate_runs(x, bad):
     """In place, each run of ``bad`` samples replaced by the line between its good neighbours
     (the nearest good value at the ends; zeros for a row with no good sample)."""
@@ -111,12 +124,7 @@ def interpolate_runs(x, bad):
             start = s
             while s < nsamp and bad[i, s]:
                 s += 1
-            left = x[i, start - 1] if start > 0 else (x[i, s] if s < nsamp else 0.0)
-            right = x[i, s] if s < nsamp else left
-            span = s - start + 1
-            for j in range(start, s):
-                frac = (j - start + 1) / span
-                x[i, j] = left + (right - left) * frac
+            _fill_run(x, i, start, s, nsamp)
 
 
 @njit(cache=True, nogil=True)
@@ -143,12 +151,7 @@ def interpolate_above(x, snr, threshold, n):
                     end = min(nsamp, t + n + 1)
                 t += 1
             counts[i] += end - start
-            left = x[i, start - 1] if start > 0 else (x[i, end] if end < nsamp else 0.0)
-            right = x[i, end] if end < nsamp else left
-            span = end - start + 1
-            for j in range(start, end):
-                frac = (j - start + 1) / span
-                x[i, j] = left + (right - left) * frac
+            _fill_run(x, i, start, end, nsamp)
             s = end
     return counts
 

@@ -33,7 +33,7 @@ from sotodlib.preprocess.processes import FourierFilter, GlitchDetection, _Prepr
 from so_transients.detect.pca import PcaConfig, pca_filter
 from so_transients.common.step_config import ChunkConfig, ConfigError, from_yaml
 from so_transients.preprocess.processes import _register
-from so_transients.preprocess.step_fields import GroupName, require
+from so_transients.preprocess.step_fields import GroupName, has_field, require
 
 log = logging.getLogger(__name__)
 
@@ -136,15 +136,6 @@ class TransientPcaFilter(_Preprocess):
         return aman, proc_aman
 
 
-def _has_field(aman, path):
-    node = aman
-    for part in path.split("."):
-        if not hasattr(node, "_fields") or part not in node._fields:
-            return False
-        node = node[part]
-    return True
-
-
 def _field_paths(aman, filter_name, params):
     """The fields of ``aman`` sotodlib's filter ``filter_name`` may read with ``params``: each
     of its arguments given or defaulting to a string that names a field (``timeconst:
@@ -155,7 +146,7 @@ def _field_paths(aman, filter_name, params):
     for name, arg in inspect.signature(getattr(tod_ops.filters, filter_name)).parameters.items():
         value = params.get(name, arg.default)
         path = name if value is None else value
-        if isinstance(path, str) and _has_field(aman, path):
+        if isinstance(path, str) and has_field(aman, path):
             out.append(path)
     return out
 

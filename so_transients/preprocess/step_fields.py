@@ -59,7 +59,8 @@ class GroupName:
         return f"{obs_id} ({', '.join(parts) or 'all detectors'})"
 
 
-def _has(aman, path):
+def has_field(aman, path):
+    """Whether ``aman`` holds the field at the dotted ``path``."""
     node = aman
     for part in path.split("."):
         if not hasattr(node, "_fields") or part not in node._fields:
@@ -71,7 +72,7 @@ def _has(aman, path):
 def require(aman, step, extra=()):
     """Raise a ValueError naming the step, the observation and group, and every missing
     field of ``REQUIRED[step]`` (and ``extra``)."""
-    missing = [p for p in REQUIRED[step] + tuple(extra) if not _has(aman, p)]
+    missing = [p for p in REQUIRED[step] + tuple(extra) if not has_field(aman, p)]
     if missing:
         raise ValueError(f"{step}: {GroupName(aman)} lacks {', '.join(missing)}")
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from so_transients.common.step_config import ConfigError, from_yaml_parts, positive, share
+from so_transients.coherent.joint import DEFAULT_INDICES
 from so_transients.coherent.sweep_stack import StackSettings
 from so_transients.coherent.vetoes import Vetoes
 from so_transients.detect.find import FindConfig
@@ -34,6 +35,10 @@ class CoherentConfig:
     stack_seed: float = 3.0           # sweep stacking: stacks start from single-crossing maxima this high
     stack_max_share: float = 0.7      # sweep stacking: no crossing may make more than this share of a
     #                                   stack's sum
+    joint_bands: bool = False         # coherent mode: a group holding both bands of a dichroic wafer
+    #                                   (subobs use: [wafer_slot]) is searched with the joint-band
+    #                                   statistic J (docs: the coherent search)
+    spectral_indices: tuple = DEFAULT_INDICES   # joint_bands: J is maximised over these
 
     def __post_init__(self):
         positive("transient_find", coherent_threshold=self.coherent_threshold,
@@ -43,6 +48,9 @@ class CoherentConfig:
                  stack_max_share=self.stack_max_share)
         share("transient_find", max_single_share=self.max_single_share,
               max_instant_share=self.max_instant_share, stack_max_share=self.stack_max_share)
+        self.spectral_indices = tuple(float(a) for a in self.spectral_indices)
+        if not self.spectral_indices:
+            raise ConfigError("transient_find: spectral_indices must list at least one index")
         if self.chi2_bins == 1 or self.chi2_bins < 0 or not 0 < self.chi2_tail < 1 \
                 or not self.chi2_mismatch >= 0:
             raise ConfigError(f"transient_find: chi2_bins must be 0 (no test) or 2 or more, "

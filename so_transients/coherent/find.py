@@ -36,7 +36,11 @@ from so_transients.coherent.statistic import (
     coherent_map, crossing_geometry, measured_scale, row_offsets, row_weights
 )
 from so_transients.coherent.config import CoherentConfig
-from so_transients.coherent.vetoes import peaks, sum_terms
+from so_transients.coherent.joint import (
+    band_map, band_scans, joint_map, joint_maxima, joint_rows, map_coefficients
+)
+from so_transients.coherent.vetoes import peaks, suppress_neighbours, sum_terms
+from so_transients.common.bands import FLAVOR_BANDS
 from so_transients.detect.find import CLUSTER_FIELDS, as_arrays, band_part, merge_bands
 from so_transients.common.scan_geometry import sample_rate as rate_of
 from so_transients.coherent.sweep_stack import ScanMap, sky_position, stack_seeds
@@ -97,8 +101,7 @@ def band_candidates(snr, dets, timestamps, bore_q, xi, eta, scan, directions, si
     :data:`so_transients.detect.find.CLUSTER_FIELDS`, ``map_z`` and ``n_crossings``; detector
     indices count in ``dets``, the band's live detectors, rows of the group's ``snr``), with
     the sweep stacks of ``cfg.stack_window`` (:mod:`so_transients.coherent.sweep_stack`)."""
-    cands = {k: [] for k in (*CLUSTER_FIELDS, "map_z", "n_crossings")}
-    hits = {k: [] for k in candidates.HIT_COLUMNS}
+    cands, hits = _empty_lists()
     if len(dets) < min_dets:
         log.warning("%s: %d live detectors, fewer than min_dets = %d: too few for a coherent "
                     "search; no candidates", where, len(dets), min_dets)
@@ -123,6 +126,65 @@ def band_candidates(snr, dets, timestamps, bore_q, xi, eta, scan, directions, si
             _add(cands, hits, peak, k, directions[k], s["ra"], s["dec"], bore_q, xi, eta,
                  timestamps, timestamps[[c.sample for c in s["crossings"]]])
     return as_arrays(cands, hits)
+
+
+def _empty_lists():
+    """Candidate columns (as :func:`_add` appends them) and hit columns, empty."""
+    return ({k: [] for k in (*CLUSTER_FIELDS, "map_z", "n_crossings",
+                             *candidates.JOINT_FIND_COLUMNS)},
+            {k: [] for k in candidates.HIT_COLUMNS})
+
+
+def joint_candidates(snr, dets, names, timestamps, bore_q, xi, eta, scan, directions, sigma_amp,
+                     beam_sigma, cfg: CoherentConfig):
+    """Per band of ``names`` (both bands of one wafer), ``(candidates, hits)`` of the
+    joint-band statistic's maxima (:mod:`so_transients.coherent.joint`): each maximum of J at
+    least ``coherent_threshold`` that neither glitch veto removes (``max_single_share``,
+    ``max_instant_share``; the chi-squared test is not applied to J), the strongest of its
+    neighbours, is one candidate in each band
+    (same position and time, that band's hits and ``map_z``; ``joint_z``, the best
+    ``spectral_index`` and a shared ``joint_id``). ``dets``: per band, its live detectors
+    (rows of ``snr``), ``xi``, ``eta`` (rad), ``sigma_amp`` (mJy) theirs; ``beam_sigma``
+    (rad) per band."""
+    parts = [_empty_lists() for _ in names]
+    joint_id = 0
+    scans = band_scans(names, [snr] * len(names), dets, [xi[d] for d in dets],
+                       [eta[d] for d in dets], [sigma_amp[d] for d in dets], beam_sigma,
+                       timestamps, bore_q, scan)
+    for first, bands in scans:
+        k = scan[first]
+        rows = joint_rows(bands, cfg.row_step)
+        maps = [band_map(b, rows) for b in bands]
+        coefficients = map_coefficients(names, maps, cfg.spectral_indices)
+        j, best = joint_map(np.stack([m.z for m in maps]), coefficients)
+        window = max(b.geometry.crossing_samples(b.beam_sigma) for b in bands)
+        r, s = joint_maxima(bands, maps, rows, coefficients, j, best, cfg.coherent_threshold,
+                            window, cfg.max_single_share, cfg.max_instant_share)
+        keep = suppress_neighbours(j[r, s], r, s, int(np.ceil(2.0 / cfg.row_step)), 3 * window)
+        for row, sample in zip(r[keep], s[keep]):
+            ra, dec = sky_position(bands[0].geometry, rows[row], bore_q, first + sample)
+            for (cands, hits), band, m, d in zip(parts, bands, maps, dets):
+                weights, _ = band.weights(rows)
+                peak = dict(map_z=m.z[row, sample], joint_z=j[row, sample], joint_id=joint_id,
+                            spectral_index=cfg.spectral_indices[best[row, sample]],
+                            sample=first + sample,
+                            **hit_terms(band.snr, first, band.geometry, rows, weights, row,
+                                        sample, band.beam_sigma, cfg))
+                _add(cands, hits, peak, k, directions[k], ra, dec, bore_q, xi[d], eta[d],
+                     timestamps)
+            joint_id += 1
+    return [as_arrays(c, h) for c, h in parts]
+
+
+def joint_pair(bands, live, min_dets):
+    """The two bands of one dichroic wafer flavour (:data:`so_transients.common.bands.
+    FLAVOR_BANDS`) a group holds, each with at least ``min_dets`` live detectors, or None."""
+    present = sorted(set(np.asarray(bands)[np.asarray(live, bool)]))
+    for pair in FLAVOR_BANDS.values():
+        if list(pair) == present and all(
+                np.sum((np.asarray(bands) == b) & live) >= min_dets for b in pair):
+            return pair
+    return None
 
 
 class StackInputs:
@@ -174,7 +236,10 @@ def _add(cands, hits, peak, scan, direction, ra, dec, bore_q, xi, eta, t, span=N
                        ("t_peak", times[best]), ("snr_max", v[best] if len(v) else np.nan),
                        ("n_samples", len(s)), ("n_dets", len(np.unique(d))),
                        ("peak_det", d[best] if len(d) else -1), ("map_z", peak["map_z"]),
-                       ("n_crossings", peak.get("n_crossings", 1))):
+                       ("n_crossings", peak.get("n_crossings", 1)),
+                       ("joint_z", peak.get("joint_z", np.nan)),
+                       ("spectral_index", peak.get("spectral_index", np.nan)),
+                       ("joint_id", peak.get("joint_id", -1))):
         cands[key].append(value)
     hit_ra, hit_dec = pointing.radec_of_samples(bore_q, xi, eta, d, s)
     for key, value in (("det", d), ("samp", s), ("snr", v), ("ra", hit_ra), ("dec", hit_dec)):
@@ -192,6 +257,19 @@ def coherent_group_candidates(snr, timestamps, bore_q, xi, eta, scan, directions
     detectors is not searched."""
     sample_rate = rate_of(timestamps, where)
     parts = []
+    pair = joint_pair(bands, live, min_dets) if cfg.joint_bands else None
+    if cfg.joint_bands and pair is None:
+        log.warning("%s: joint_bands needs both bands of one wafer in the group, each with at "
+                    "least min_dets = %d live detectors (subobs use: [wafer_slot]); found %s: "
+                    "each band is searched alone", where or "group", min_dets,
+                    sorted(set(np.asarray(bands)[live])))
+    if pair is not None:
+        dets = [np.flatnonzero((bands == b) & live) for b in pair]
+        found = joint_candidates(snr, dets, pair, timestamps, bore_q, xi, eta, scan, directions,
+                                 sigma_amp, [float(np.median(beam_sigma[d])) for d in dets],
+                                 cfg)
+        return merge_bands([band_part(c, h, d, b, wafers)
+                            for (c, h), d, b in zip(found, dets, pair)], cap, where)
     for band in sorted(set(bands)):
         dets = np.flatnonzero((bands == band) & live)
         c, h = band_candidates(snr, dets, timestamps, bore_q, xi[dets], eta[dets], scan,

@@ -67,6 +67,13 @@ SCHEMA = (
                                        "scan's measured spread (NaN in paper mode)"),
     Column("n_crossings", "int", None, _F, "crossings whose coherent Z map_z sums: more than "
                                            "1 for a sweep stack (coherent mode), else 1"),
+    Column("joint_z", "float", None, _F, "joint_bands: the joint-band statistic J of the map "
+                                         "maximum (both bands of the wafer at the best "
+                                         "spectral index; NaN without)"),
+    Column("spectral_index", "float", None, _F, "joint_bands: the spectral index alpha (S "
+                                                "proportional to nu^alpha) that maximises J"),
+    Column("joint_id", "int", None, _F, "joint_bands: number shared by the two bands' "
+                                        "candidates of one joint maximum (-1: none)"),
     Column("pass_n_dets", "bool", None, _C, "enough detectors (min_dets)"),
     Column("pass_aspect_ratio", "bool", None, _C, "detectors form a line along the scan"),
     Column("pass_time_order", "bool", None, _C, "hit times follow a source drifting across"),
@@ -109,6 +116,10 @@ SCHEMA = (
     Column("offset", "float", "mJy", _T, "fitted constant C of the beam model"),
     Column("offset_err", "float", "mJy", _T, "error of offset"),
     Column("snr_fit", "float", None, _T, "flux / flux_err"),
+    Column("snr_joint", "float", None, _T, "joint_bands: both bands' fitted fluxes combined at "
+                                           "spectral_index, the S/N of the flux at the first "
+                                           "band's frequency (NaN: not a joint candidate, or "
+                                           "a band's fit failed)"),
     Column("chi2_red", "float", None, _T, "reduced chi^2 of the fit"),
     Column("n_fit_samples", "int", None, _T, "samples fitted"),
     Column("n_fit_dets", "int", None, _T, "detectors fitted"),
@@ -130,7 +141,8 @@ SCHEMA = (
                                             "score_model (NaN: no model, or not fitted)"),
     Column("pass_score", "bool", None, _T, "real_score >= min_real_score (True without a cut)",
            missing=True),
-    Column("detected", "bool", None, _T, "fit_ok, snr_fit >= min_snr, pass_peak_ratio, "
+    Column("detected", "bool", None, _T, "fit_ok, snr_fit (or snr_joint) >= min_snr, "
+                                          "pass_peak_ratio, "
                                           "pass_far, pass_score, not moving and not a "
                                           "duplicate"),
 )
@@ -139,6 +151,20 @@ BY_NAME = {c.name: c for c in SCHEMA}
 #: Samples of the clusters (``aman.transient_hits``), read by the cuts and the plots.
 HIT_COLUMNS = {"cand": np.int64, "det": np.int64, "samp": np.int64, "snr": np.float32,
                "ra": np.float64, "dec": np.float64}
+
+
+#: ``transient_find`` columns only the coherent mode's ``joint_bands`` fills: every other
+#: search gives them their missing value (:func:`fill_missing`).
+JOINT_FIND_COLUMNS = ("joint_z", "spectral_index", "joint_id")
+
+
+def fill_missing(values: dict, names, n) -> dict:
+    """``values`` with each column of ``names`` it lacks at its missing value (``n`` rows)."""
+    for name in names:
+        if name not in values:
+            column = BY_NAME[name]
+            values[name] = np.full(n, column.fill, column.dtype)
+    return values
 
 
 def columns(step=None, saved=False):

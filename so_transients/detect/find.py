@@ -266,6 +266,7 @@ def band_part(cands, hits, dets, band, wafers):
     (``dets``: the group indices of the rows they counted in), its band and wafer."""
     cands["peak_det"], hits["det"] = dets[cands["peak_det"].astype(int)], dets[hits["det"]]
     cands["bandpass"] = np.full(len(cands["scan"]), band)
+    candidates.fill_missing(cands, candidates.JOINT_FIND_COLUMNS, len(cands["scan"]))
     cands["wafer_slot"] = np.asarray(wafers)[cands["peak_det"]]
     return cands, hits
 

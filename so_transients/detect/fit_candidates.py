@@ -11,7 +11,7 @@ import numpy as np
 
 from so_transients.common import candidates
 from so_transients.common.angles import ARCMIN, ARCSEC, sky_separation
-from so_transients.common.bands import fwhm_to_sigma
+from so_transients.common.bands import CENTER_GHZ, fwhm_to_sigma
 from so_transients.detect.fit import FitConfig, FitInputs, fit_at, measure_error_scale
 from so_transients.detect.forced_fit import stack_fit
 from so_transients.detect.motion import flag_moving
@@ -46,6 +46,7 @@ def fit_group_candidates(data: FitInputs, cands, det_bands, cfg: FitConfig, scor
     if score is not None and fitted.any():
         out["real_score"][fitted], out["pass_score"][fitted] = score(
             {k: np.asarray(v)[fitted] for k, v in {**cands, **out}.items()})
+    out["snr_joint"] = joint_snr(cands, out)
     fwhm = {b: float(np.median(data.beam_sigma[det_bands == b])) / fwhm_to_sigma(1.0)
             for b in np.unique(cands["bandpass"])}
     out.update(detection_decision(cands, out, cfg, fwhm))
@@ -64,7 +65,8 @@ def detection_decision(cands, fits, cfg: FitConfig, fwhm_by_band):
     ``duplicate_of`` names its ``cand_id``. The motion test then sees one detection per
     crossing (a duplicate takes its ``moving`` and ``motion_rate``)."""
     n = len(cands["bandpass"])
-    significant = fits["fit_ok"] & (np.nan_to_num(fits["snr_fit"]) >= cfg.min_snr)
+    snr = np.fmax(fits["snr_fit"], fits.get("snr_joint", np.full(n, np.nan)))
+    significant = fits["fit_ok"] & (np.nan_to_num(snr) >= cfg.min_snr)
     out = {"pass_peak_ratio": peak_ratio_ok(cands["snr_max"], fits["snr_fit"],
                                             cfg.max_peak_ratio)}
     allowed = np.asarray(cands.get("pass_far", np.ones(n, bool)), bool) \
@@ -85,6 +87,25 @@ def detection_decision(cands, fits, cfg: FitConfig, fwhm_by_band):
     out.update(moving=moving, motion_rate=rate,
                duplicate_of=np.where(duplicate, cand_id[kept], -1),
                detected=significant & ~moving & out["pass_peak_ratio"] & allowed & ~duplicate)
+    return out
+
+
+def joint_snr(cands, fits):
+    """For each candidate of a joint-band pair (``joint_id`` >= 0, both bands fitted): the
+    S/N of the flux ``S_0`` that both bands' fitted fluxes ``A_b`` (errors ``s_b``) give at
+    the pair's ``spectral_index`` alpha, ``sum_b r_b A_b / s_b^2 / sqrt(sum_b r_b^2 /
+    s_b^2)`` with ``r_b = nu_b^alpha`` (the bands' centre frequencies); NaN otherwise."""
+    n = len(cands["bandpass"])
+    out = np.full(n, np.nan)
+    joint = np.asarray(cands.get("joint_id", np.full(n, -1)))
+    for j in np.unique(joint[joint >= 0]):
+        sel = np.flatnonzero(joint == j)
+        flux, err = fits["flux"][sel], fits["flux_err"][sel]
+        if len(sel) < 2 or not (fits["fit_ok"][sel] & (err > 0)).all():
+            continue
+        nu = np.array([CENTER_GHZ[b] for b in cands["bandpass"][sel]])
+        r = (nu / nu[0]) ** float(cands["spectral_index"][sel[0]])
+        out[sel] = np.sum(r * flux / err**2) / np.sqrt(np.sum(r**2 / err**2))
     return out
 
 

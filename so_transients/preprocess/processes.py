@@ -40,7 +40,8 @@ from so_transients.detect.fit_candidates import fit_group_candidates
 from so_transients.detect import spectral_ops
 from so_transients.detect.common_mode import ExcursionConfig, mask_excursions
 from so_transients.detect.jumps import JumpConfig, remove_common_jumps
-from so_transients.significance.far import SignificanceConfig, significance_by_band
+from so_transients.significance.far import SignificanceConfig
+from so_transients.significance.joint_far import group_significance
 from so_transients.coherent.vetoes import Vetoes
 from so_transients.coherent.sweep_stack import StackSettings
 from so_transients.detect.matched_filter import (
@@ -59,6 +60,7 @@ SLOTS = "archive_slots"      # scalars in aman.transient_candidates: find's arch
 MIN_DETS = "min_dets"        # ... and detector threshold, for the later steps (and
 #                              fit.SPEED_TOLERANCE, the scan-speed tolerance; and the
 #                              fields of sweep_stack.StackSettings for transient_significance)
+SPECTRAL_INDICES = "spectral_indices"   # ... and the joint-band search's indices (an array)
 
 
 def _register(cls):
@@ -482,6 +484,7 @@ class TransientFind(_Preprocess):
             table.wrap(name, np.nan if stacking is None else getattr(stacking, name))
         for name in (f.name for f in fields(Vetoes)):
             table.wrap(name, float(getattr(self.coherent, name)))
+        table.wrap(SPECTRAL_INDICES, np.asarray(self.coherent.spectral_indices, float))
         _replace(aman, "transient_candidates", table)
         _replace(aman, "transient_hits", candidates.to_aman(hits, HIT_AXIS, len(hits["cand"])))
         _replace(aman, SCAN_FIELD, scan.astype(np.int32), [(0, "samps")])
@@ -646,11 +649,11 @@ class TransientSignificance(_Preprocess):
         scan, t = np.asarray(aman[SCAN_FIELD]), np.asarray(aman.timestamps)
         searched_hours = np.count_nonzero(scan >= 0) * np.median(np.diff(t)) / 3600.0
         cfg = replace(self.cfg, n_slides=self.cfg.slides_for(searched_hours))
-        result, live, scale = significance_by_band(
+        result, live, scale = group_significance(
             aman.transient_snr, t, pointing.boresight_q(aman),
             np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta), scan,
             np.asarray(f.sigma_amp), ~np.asarray(f.dead, bool), np.asarray(f.beam_sigma),
-            bands, rows, cfg, _vetoes(cands), _stacking(cands))
+            bands, rows, cfg, _vetoes(cands), _stacking(cands), _spectral_indices(cands))
         if not np.isfinite(live):
             log.warning("%s: %s: no band with live detectors: far not computed (NaN), "
                         "candidates pass", self.name, GroupName(aman))
@@ -683,6 +686,13 @@ def _stacking(cands) -> StackSettings | None:
     stored = _stored(cands, StackSettings)
     window = stored["stack_window"]
     return StackSettings(**stored) if window is not None and np.isfinite(window) else None
+
+
+def _spectral_indices(cands) -> tuple:
+    """The spectral indices ``transient_find``'s joint-band statistic was maximised over."""
+    if SPECTRAL_INDICES in cands._fields:
+        return tuple(np.asarray(cands[SPECTRAL_INDICES], float))
+    return CoherentConfig().spectral_indices
 
 
 def _vetoes(cands) -> Vetoes:

@@ -5,6 +5,7 @@
 - :mod:`.slide_groups`: detectors slid in groups so that slides share their sums
 - :mod:`.slide_maxima`: a slide map's high local maxima, found coarse to fine
 - :mod:`.stack_slides`: time slides of sweep stacks
+- :mod:`.joint_far`: the joint-band statistic's background and ``far``
 - :mod:`.tail_model`: counting beyond the measured background with a tail model
 
 Imports from :mod:`so_transients.common`, :mod:`so_transients.detect` and

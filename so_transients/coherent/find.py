@@ -264,6 +264,9 @@ def coherent_group_candidates(snr, timestamps, bore_q, xi, eta, scan, directions
                     "each band is searched alone", where or "group", min_dets,
                     sorted(set(np.asarray(bands)[live])))
     if pair is not None:
+        if cfg.stack_window:
+            log.warning("%s: joint_bands searches single crossings: stack_window is not "
+                        "applied", where or "group")
         dets = [np.flatnonzero((bands == b) & live) for b in pair]
         found = joint_candidates(snr, dets, pair, timestamps, bore_q, xi, eta, scan, directions,
                                  sigma_amp, [float(np.median(beam_sigma[d])) for d in dets],

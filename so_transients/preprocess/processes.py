@@ -416,6 +416,8 @@ class TransientFind(_Preprocess):
           stack_window: null              # s: stack crossings this long (null: no stacking)
           stack_seed: 3.0                 # stacks start from single-crossing maxima this high
           stack_max_share: 0.7            # ... and one crossing makes at most this of the sum
+          joint_bands: false              # both bands of a wafer together (below)
+          spectral_indices: [-1, 0, 1, 2, 3]   # ... J maximised over these
         save: true
 
     ``mode: coherent`` replaces the S/N >= 3 clustering by the maxima of the coherent
@@ -436,6 +438,16 @@ class TransientFind(_Preprocess):
     :mod:`so_transients.coherent.vetoes`) and the stacking settings are kept in
     ``aman.transient_candidates`` for ``transient_significance``, which selects its
     background with them.
+
+    ``joint_bands: true`` (coherent mode) searches a group holding both bands of a dichroic
+    wafer (``subobs: use: [wafer_slot]``) with the joint-band statistic J
+    (:mod:`so_transients.coherent.joint`): both bands' maps on shared positions, combined
+    with the weights a spectral index implies and their measured correlation, maximised over
+    ``spectral_indices``. Each maximum of J is one candidate per band (``joint_z``,
+    ``spectral_index``, a shared ``joint_id``); ``transient_significance`` ranks J among its
+    own background, ``transient_fit`` combines the two bands' fits (``snr_joint``). A group
+    without both bands is searched band by band, with a warning. Off by default:
+    docs/results/joint_bands.md has what it gains.
     """
 
     name = "transient_find"
@@ -598,6 +610,11 @@ class TransientSignificance(_Preprocess):
     Both backgrounds' maxima are put to ``transient_find``'s chi-squared test (the settings
     it stored with its candidates): a candidate whose own maximum passes it is ranked among
     the background maxima that pass it, one that fails among all of them.
+
+    Joint-band candidates (``transient_find``'s ``joint_bands``, ``joint_id`` >= 0) are
+    ranked among the joint statistic's own time slides and sign-inverted data
+    (:mod:`so_transients.significance.joint_far`), their ``far`` per hour of the wafer
+    divided by its two bands, so that ``max_far`` means the same; J has no chi-squared test.
 
     A sweep stack (``n_crossings`` > 1) is ranked among stacks, seeded and selected as
     ``transient_find`` selects the data's: ``far_slides`` from ``n_slides`` stack slides

@@ -142,8 +142,9 @@ def joint_candidates(snr, dets, names, timestamps, bore_q, xi, eta, scan, direct
     least ``coherent_threshold`` that neither glitch veto removes (``max_single_share``,
     ``max_instant_share``; the chi-squared test is not applied to J), the strongest of its
     neighbours, is one candidate in each band
-    (same position and time, that band's hits and ``map_z``; ``joint_z``, the best
-    ``spectral_index`` and a shared ``joint_id``). ``dets``: per band, its live detectors
+    whose detectors it reaches (same position and time, that band's hits and ``map_z``;
+    ``joint_z``, the best ``spectral_index``, a shared ``joint_id`` and the scan's
+    ``band_correlation``). ``dets``: per band, its live detectors
     (rows of ``snr``), ``xi``, ``eta`` (rad), ``sigma_amp`` (mJy) theirs; ``beam_sigma``
     (rad) per band."""
     parts = [_empty_lists() for _ in names]
@@ -155,7 +156,7 @@ def joint_candidates(snr, dets, names, timestamps, bore_q, xi, eta, scan, direct
         k = scan[first]
         rows = joint_rows(bands, cfg.row_step)
         maps = [band_map(b, rows) for b in bands]
-        coefficients = map_coefficients(names, maps, cfg.spectral_indices)
+        coefficients, correlation = map_coefficients(names, maps, cfg.spectral_indices)
         j, best = joint_map(np.stack([m.z for m in maps]), coefficients)
         window = max(b.geometry.crossing_samples(b.beam_sigma) for b in bands)
         r, s = joint_maxima(bands, maps, rows, coefficients, j, best, cfg.coherent_threshold,
@@ -167,9 +168,11 @@ def joint_candidates(snr, dets, names, timestamps, bore_q, xi, eta, scan, direct
                 weights, _ = band.weights(rows)
                 peak = dict(map_z=m.z[row, sample], joint_z=j[row, sample], joint_id=joint_id,
                             spectral_index=cfg.spectral_indices[best[row, sample]],
-                            sample=first + sample,
+                            band_correlation=correlation[0, 1], sample=first + sample,
                             **hit_terms(band.snr, first, band.geometry, rows, weights, row,
                                         sample, band.beam_sigma, cfg))
+                if not len(peak["hit_dets"]):     # the row reaches none of this band
+                    continue
                 _add(cands, hits, peak, k, directions[k], ra, dec, bore_q, xi[d], eta[d],
                      timestamps)
             joint_id += 1
@@ -239,7 +242,8 @@ def _add(cands, hits, peak, scan, direction, ra, dec, bore_q, xi, eta, t, span=N
                        ("n_crossings", peak.get("n_crossings", 1)),
                        ("joint_z", peak.get("joint_z", np.nan)),
                        ("spectral_index", peak.get("spectral_index", np.nan)),
-                       ("joint_id", peak.get("joint_id", -1))):
+                       ("joint_id", peak.get("joint_id", -1)),
+                       ("band_correlation", peak.get("band_correlation", np.nan))):
         cands[key].append(value)
     hit_ra, hit_dec = pointing.radec_of_samples(bore_q, xi, eta, d, s)
     for key, value in (("det", d), ("samp", s), ("snr", v), ("ra", hit_ra), ("dec", hit_dec)):

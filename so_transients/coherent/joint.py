@@ -156,11 +156,11 @@ def index_coefficients(bands, n, indices=DEFAULT_INDICES, correlation=None) -> n
     return out
 
 
-def map_coefficients(bands, maps, indices=DEFAULT_INDICES) -> np.ndarray:
-    """:func:`index_coefficients` of the bands' :class:`BandMap` s, with their measured
-    correlation (:func:`band_correlation`)."""
-    correlation = band_correlation(np.stack([m.z for m in maps])) if len(maps) > 1 else None
-    return index_coefficients(bands, [m.n for m in maps], indices, correlation)
+def map_coefficients(bands, maps, indices=DEFAULT_INDICES) -> tuple:
+    """``(coefficients, correlation)``: :func:`index_coefficients` of the bands'
+    :class:`BandMap` s with their measured correlation (:func:`band_correlation`)."""
+    correlation = band_correlation(np.stack([m.z for m in maps]))
+    return index_coefficients(bands, [m.n for m in maps], indices, correlation), correlation
 
 
 def joint_map(z, coefficients):

@@ -74,6 +74,9 @@ SCHEMA = (
                                                 "proportional to nu^alpha) that maximises J"),
     Column("joint_id", "int", None, _F, "joint_bands: number shared by the two bands' "
                                         "candidates of one joint maximum (-1: none)"),
+    Column("band_correlation", "float", None, _F, "joint_bands: correlation of the two bands' "
+                                                  "maps in the candidate's scan (their shared "
+                                                  "residual atmosphere)"),
     Column("pass_n_dets", "bool", None, _C, "enough detectors (min_dets)"),
     Column("pass_aspect_ratio", "bool", None, _C, "detectors form a line along the scan"),
     Column("pass_time_order", "bool", None, _C, "hit times follow a source drifting across"),
@@ -117,9 +120,9 @@ SCHEMA = (
     Column("offset_err", "float", "mJy", _T, "error of offset"),
     Column("snr_fit", "float", None, _T, "flux / flux_err"),
     Column("snr_joint", "float", None, _T, "joint_bands: both bands' fitted fluxes combined at "
-                                           "spectral_index, the S/N of the flux at the first "
-                                           "band's frequency (NaN: not a joint candidate, or "
-                                           "a band's fit failed)"),
+                                           "spectral_index with their band_correlation, the "
+                                           "S/N of the flux at the first band's frequency "
+                                           "(NaN: not a joint pair, or a band's fit failed)"),
     Column("chi2_red", "float", None, _T, "reduced chi^2 of the fit"),
     Column("n_fit_samples", "int", None, _T, "samples fitted"),
     Column("n_fit_dets", "int", None, _T, "detectors fitted"),
@@ -141,7 +144,8 @@ SCHEMA = (
                                             "score_model (NaN: no model, or not fitted)"),
     Column("pass_score", "bool", None, _T, "real_score >= min_real_score (True without a cut)",
            missing=True),
-    Column("detected", "bool", None, _T, "fit_ok, snr_fit (or snr_joint) >= min_snr, "
+    Column("detected", "bool", None, _T, "fit_ok, snr_fit (or, for the member of a joint "
+                                          "pair with the higher snr_fit, snr_joint) >= min_snr, "
                                           "pass_peak_ratio, "
                                           "pass_far, pass_score, not moving and not a "
                                           "duplicate"),
@@ -155,7 +159,7 @@ HIT_COLUMNS = {"cand": np.int64, "det": np.int64, "samp": np.int64, "snr": np.fl
 
 #: ``transient_find`` columns only the coherent mode's ``joint_bands`` fills: every other
 #: search gives them their missing value (:func:`fill_missing`).
-JOINT_FIND_COLUMNS = ("joint_z", "spectral_index", "joint_id")
+JOINT_FIND_COLUMNS = ("joint_z", "spectral_index", "joint_id", "band_correlation")
 
 
 def fill_missing(values: dict, names, n) -> dict:

@@ -300,6 +300,8 @@ def cap_candidates(cands, hits, max_candidates, where=""):
                 f"{where}: " if where else "", n, max_candidates, max_candidates)
     rank = cands.get("map_z")
     rank = cands["snr_max"] if rank is None or not np.isfinite(rank).all() else rank
+    joint = cands.get("joint_z")      # a joint-band search's candidates: by J
+    rank = joint if joint is not None and np.isfinite(joint).all() else rank
     keep = np.sort(np.argsort(-rank, kind="stable")[:max_candidates])
     renumber = np.full(n, -1)
     renumber[keep] = np.arange(len(keep))

@@ -65,8 +65,8 @@ def detection_decision(cands, fits, cfg: FitConfig, fwhm_by_band):
     ``duplicate_of`` names its ``cand_id``. The motion test then sees one detection per
     crossing (a duplicate takes its ``moving`` and ``motion_rate``)."""
     n = len(cands["bandpass"])
-    snr = np.fmax(fits["snr_fit"], fits.get("snr_joint", np.full(n, np.nan)))
-    significant = fits["fit_ok"] & (np.nan_to_num(snr) >= cfg.min_snr)
+    significant = fits["fit_ok"] & (np.nan_to_num(fits["snr_fit"]) >= cfg.min_snr)
+    significant |= fits["fit_ok"] & jointly_significant(cands, fits, cfg.min_snr)
     out = {"pass_peak_ratio": peak_ratio_ok(cands["snr_max"], fits["snr_fit"],
                                             cfg.max_peak_ratio)}
     allowed = np.asarray(cands.get("pass_far", np.ones(n, bool)), bool) \
@@ -90,11 +90,29 @@ def detection_decision(cands, fits, cfg: FitConfig, fwhm_by_band):
     return out
 
 
+def jointly_significant(cands, fits, min_snr):
+    """Whether each candidate is the member of a joint pair with the higher ``snr_fit``
+    and the pair's ``snr_joint`` reaches ``min_snr``: one band's detection stands for the
+    pair (the other is detected only on its own ``snr_fit``)."""
+    n = len(cands["bandpass"])
+    out = np.zeros(n, bool)
+    joint = np.asarray(cands.get("joint_id", np.full(n, -1)))
+    snr_joint = np.nan_to_num(np.asarray(fits.get("snr_joint", np.full(n, np.nan))))
+    own = np.nan_to_num(np.asarray(fits["snr_fit"], float), nan=-np.inf)
+    for j in np.unique(joint[joint >= 0]):
+        sel = np.flatnonzero(joint == j)
+        best = sel[np.argmax(own[sel])]
+        out[best] = snr_joint[best] >= min_snr
+    return out
+
+
 def joint_snr(cands, fits):
     """For each candidate of a joint-band pair (``joint_id`` >= 0, both bands fitted): the
-    S/N of the flux ``S_0`` that both bands' fitted fluxes ``A_b`` (errors ``s_b``) give at
-    the pair's ``spectral_index`` alpha, ``sum_b r_b A_b / s_b^2 / sqrt(sum_b r_b^2 /
-    s_b^2)`` with ``r_b = nu_b^alpha`` (the bands' centre frequencies); NaN otherwise."""
+    S/N of the flux ``S_0`` that both bands' fitted fluxes ``A`` give at the pair's
+    ``spectral_index`` alpha, ``r^T V^-1 A / sqrt(r^T V^-1 r)`` with ``r_b = nu_b^alpha``
+    (the bands' centre frequencies) and ``V`` the fluxes' covariance: their errors and the
+    bands' ``band_correlation`` (their noise shares the residual atmosphere); NaN
+    otherwise."""
     n = len(cands["bandpass"])
     out = np.full(n, np.nan)
     joint = np.asarray(cands.get("joint_id", np.full(n, -1)))
@@ -105,7 +123,10 @@ def joint_snr(cands, fits):
             continue
         nu = np.array([CENTER_GHZ[b] for b in cands["bandpass"][sel]])
         r = (nu / nu[0]) ** float(cands["spectral_index"][sel[0]])
-        out[sel] = np.sum(r * flux / err**2) / np.sqrt(np.sum(r**2 / err**2))
+        rho = np.nan_to_num(np.asarray(cands.get("band_correlation", np.zeros(n)))[sel[0]])
+        corr = np.where(np.eye(len(sel), dtype=bool), 1.0, rho)
+        weights = np.linalg.solve(corr * np.outer(err, err), r)
+        out[sel] = weights @ flux / np.sqrt(weights @ r)
     return out
 
 

@@ -89,7 +89,7 @@ def joint_scan(scans, first, cfg: SignificanceConfig, rng, indices=DEFAULT_INDIC
         slid.append(groups)
         maps.append(band_map(s, rows, fill_edges(c.astype(np.float64), s.snr, weights, norm,
                                                  s.geometry.lag_samples)))
-    coefficients = map_coefficients([s.band for s in scans], maps, indices)
+    coefficients, _ = map_coefficients([s.band for s in scans], maps, indices)
     j, best = joint_map(np.stack([m.z for m in maps]), coefficients)
     out = JointScan(first, rows, scans, maps, coefficients, j, best, window, tuple(indices))
     fs = scans[0].geometry.sample_rate
@@ -150,7 +150,7 @@ def _slide(js: JointScan, cyclic, partial, slid, cfg, rng, min_shift, max_single
             scales = [measured_scale(zb) for zb in z]
             maps = [BandMap(zb / sc, sc, search.norm / sc)
                     for zb, sc, search in zip(z, scales, searches)]
-            coefficients = map_coefficients([s.band for s in js.scans], maps, js.indices)
+            coefficients, _ = map_coefficients([s.band for s in js.scans], maps, js.indices)
         j, best = joint_map(np.stack([zb / sc for zb, sc in zip(z, scales)]), coefficients)
         js.live_s += nsamp / js.scans[0].geometry.sample_rate
         r, s = local_maxima(j, floor, js.window)

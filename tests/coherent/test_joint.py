@@ -9,6 +9,7 @@ from so_transients.coherent.joint import (
 from so_transients.coherent.statistic import CrossingGeometry, window_max
 from so_transients.common.angles import ARCMIN
 from so_transients.common.robust import mad_std
+from so_transients.detect.fit_candidates import joint_snr, jointly_significant
 from so_transients.significance.far import SignificanceConfig
 from so_transients.significance.joint_far import joint_background, joint_scan
 
@@ -116,11 +117,13 @@ FLARE_SEED = 5
 RATE = 20.0          # false alarms per hour of the wafer (both bands): 10 per band-hour
 
 
-def test_joint_false_alarms_on_noise_follow_their_rate(backgrounds):
-    """The data's own maxima above the threshold for ``RATE`` number what the rate says
-    over the data's live time (Poisson, 3 sigma), as each band's do."""
+@pytest.mark.parametrize("rate", [RATE, 10 * RATE])
+def test_joint_false_alarms_on_noise_follow_their_rate(backgrounds, rate):
+    """The data's own maxima above the threshold for ``rate`` number what the rate says
+    over the data's live time (Poisson, 3 sigma: 2 expected at ``RATE``, from the slides;
+    20 at ten times it, from the sign-inverted data)."""
     joint, single = backgrounds
-    threshold = joint.threshold(RATE)
+    threshold = joint.threshold(rate)
     counts = []
 
     def visit(js):
@@ -129,11 +132,11 @@ def test_joint_false_alarms_on_noise_follow_their_rate(backgrounds):
         counts.append(len(r))
 
     joint_background(noise_scans(11), SignificanceConfig(n_slides=0), visit=visit)
-    expected = RATE * joint.data_hours
+    expected = rate * joint.data_hours
     assert abs(sum(counts) - expected) <= 3 * np.sqrt(expected) + 1
     # the trials over indices cost little: the joint threshold is within 0.5 of the
     # single bands' at half the rate each
-    assert all(abs(threshold - s.threshold(RATE / 2)) < 0.5 for s in single.values())
+    assert all(abs(threshold - s.threshold(rate / 2)) < 0.5 for s in single.values())
 
 
 def test_a_flare_detected_jointly_that_neither_band_detects_alone(backgrounds):
@@ -176,3 +179,23 @@ def unit_z(band):
     clean.snr -= band_scan(band, np.random.default_rng(0), 1000).snr
     js = joint_scan([clean], 0, SignificanceConfig(n_slides=0), np.random.default_rng(0))
     return np.nanmax(js.j * js.maps[0].scale)
+
+
+def test_a_pairs_fits_combine_with_their_correlation_and_detect_once():
+    """Two bands' fits of S/N 3.5 at index 0: combined 3.5 sqrt(2) = 4.95 with independent
+    noise, 3.5 sqrt(2 / 1.3) = 4.34 when the bands' maps correlate at 0.3; only the member
+    with the higher own S/N is detected through the pair."""
+    cands = dict(bandpass=np.array(["f090", "f150", "f090"]), joint_id=np.array([0, 0, -1]),
+                 spectral_index=np.array([0.0, 0.0, np.nan]),
+                 band_correlation=np.array([0.0, 0.0, np.nan]))
+    fits = dict(flux=np.array([35.0, 35.0, 50.0]), flux_err=np.array([10.0, 10.0, 10.0]),
+                fit_ok=np.array([True, True, True]))
+    fits["snr_fit"] = fits["flux"] / fits["flux_err"]
+    fits["snr_fit"][1] = 3.4
+    assert joint_snr(cands, fits)[:2] == pytest.approx([35 / 10 * np.sqrt(2)] * 2, rel=0.02)
+    assert np.isnan(joint_snr(cands, fits)[2])
+    cands["band_correlation"][:2] = 0.3
+    fits["snr_joint"] = joint_snr(cands, fits)
+    assert fits["snr_joint"][0] == pytest.approx(3.5 * np.sqrt(2 / 1.3), rel=0.02)
+    assert list(jointly_significant(cands, fits, 4.0)) == [True, False, False]
+    assert not jointly_significant(cands, fits, 4.5).any()

@@ -8,9 +8,10 @@ spectral indices. The background is the same statistic made of
 - the sign-inverted data (every band's S/N negated: noise with every correlation between
   detectors and between bands kept, and no source), its local maxima from
   ``background_floor`` over the data's live time, bright sources' filter sidelobes left out;
-- ``n_slides`` time slides, each band's detectors slid in its own random groups
-  (:mod:`so_transients.significance.slide_groups`, its bright maxima gated out first), its
-  local maxima from ``slide_floor`` over ``n_slides`` times the scan.
+- ``n_slides`` time slides, the detectors slid in random groups
+  (:mod:`so_transients.significance.slide_groups`, each band's bright maxima gated out
+  first), a pixel's detectors of both bands alike, so that the slides keep the bands'
+  correlation; its local maxima from ``slide_floor`` over ``n_slides`` times the scan.
 
 Both are taken at their own index, so the trials the maximum over indices adds are
 counted. Maxima one detector makes more than ``max_single_share`` of are left out of both,
@@ -24,6 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from so_transients.coherent.joint import (
     DEFAULT_INDICES, BandMap, BandScan, band_map, band_scans, joint_map, joint_rows,
@@ -63,6 +65,7 @@ class JointScan:
     data_live_s: float = 0.0
     slides: list = field(default_factory=list)
     live_s: float = 0.0
+    slide_correlation: np.ndarray | None = None    # the bands' correlation in the slides
 
 
 def scan_window(scans) -> int:
@@ -79,8 +82,12 @@ def joint_scan(scans, first, cfg: SignificanceConfig, rng, indices=DEFAULT_INDIC
     rows = joint_rows(scans, cfg.row_step)
     window = scan_window(scans)
     cyclic, partial, slid, maps = [], [], [], []
-    for s in scans:
-        groups = _groups(s, cfg, rng, window)
+    partners = pixel_partners(scans)
+    first_groups = _groups(scans[0], cfg, rng, window)
+    for s, partner in zip(scans, partners):
+        groups = None if first_groups is None else first_groups[partner]
+        if groups is not None and len(np.unique(groups)) < int(first_groups.max()) + 1:
+            groups = None       # a group without this band's detectors: each its own term
         weights, norm = s.weights(rows)
         c, p = cyclic_map(s.snr, s.geometry, rows, s.beam_sigma, s.sigma_amp, s.live, weights,
                           norm, groups)
@@ -98,8 +105,17 @@ def joint_scan(scans, first, cfg: SignificanceConfig, rng, indices=DEFAULT_INDIC
     min_shift = int(cfg.min_slide_s * fs)
     nsamp = j.shape[1]
     if cfg.n_slides and nsamp > 2 * min_shift + 1:
-        _slide(out, cyclic, partial, slid, cfg, rng, min_shift, max_single_share)
+        _slide(out, cyclic, partial, slid, partners, cfg, rng, min_shift, max_single_share)
     return out
+
+
+def pixel_partners(scans) -> list:
+    """Per band, each detector's nearest detector of the first band on the focal plane (its
+    pixel's partner in a dichroic wafer): slides shift both alike, so that they keep the
+    bands' correlation (the same residual atmosphere) as the data have it."""
+    first = scans[0].geometry
+    tree = cKDTree(np.c_[first.along, first.across])
+    return [tree.query(np.c_[s.geometry.along, s.geometry.across])[1] for s in scans]
 
 
 def _groups(scan: BandScan, cfg, rng, window):
@@ -124,9 +140,11 @@ def _inverted_maxima(js: JointScan, cfg, max_single_share):
     return j_inv[r[keep], s[keep]]
 
 
-def _slide(js: JointScan, cyclic, partial, slid, cfg, rng, min_shift, max_single_share):
-    """``cfg.n_slides`` time slides of the scan: each band's bright maxima gated out, its
-    detectors slid in its groups, the joint statistic's local maxima from the slides'
+def _slide(js: JointScan, cyclic, partial, slid, partners, cfg, rng, min_shift,
+           max_single_share):
+    """``cfg.n_slides`` time slides of the scan: each band's bright maxima gated out, the
+    first band's detectors slid in its groups and every other band's with their pixel
+    partners (:func:`pixel_partners`), the joint statistic's local maxima from the slides'
     floor (appended to ``js.slides``, their live time to ``js.live_s``)."""
     floor = max(cfg.background_floor, cfg.slide_floor)
     searches, gated = [], []
@@ -139,8 +157,9 @@ def _slide(js: JointScan, cyclic, partial, slid, cfg, rng, min_shift, max_single
         searches.append(SlideSearch(snr, s.geometry, js.rows, s.beam_sigma, s.sigma_amp,
                                     s.live, js.window, g, p))
     nsamp = js.j.shape[1]
-    offsets = [group_offsets(g, len(s.sigma_amp), nsamp, min_shift, rng, cfg.n_slides)
-               for s, g in zip(js.scans, slid)]
+    first = group_offsets(slid[0], len(js.scans[0].sigma_amp), nsamp, min_shift, rng,
+                          cfg.n_slides)
+    offsets = [first[:, partner] for partner in partners]
     scales, coefficients = None, None
     for k in range(cfg.n_slides):
         these = [o[k] for o in offsets]
@@ -150,7 +169,8 @@ def _slide(js: JointScan, cyclic, partial, slid, cfg, rng, min_shift, max_single
             scales = [measured_scale(zb) for zb in z]
             maps = [BandMap(zb / sc, sc, search.norm / sc)
                     for zb, sc, search in zip(z, scales, searches)]
-            coefficients, _ = map_coefficients([s.band for s in js.scans], maps, js.indices)
+            coefficients, js.slide_correlation = map_coefficients(
+                [s.band for s in js.scans], maps, js.indices)
         j, best = joint_map(np.stack([zb / sc for zb, sc in zip(z, scales)]), coefficients)
         js.live_s += nsamp / js.scans[0].geometry.sample_rate
         r, s = local_maxima(j, floor, js.window)

@@ -11,7 +11,7 @@ from so_transients.common.angles import ARCMIN
 from so_transients.common.robust import mad_std
 from so_transients.detect.fit_candidates import joint_snr, jointly_significant
 from so_transients.significance.far import SignificanceConfig
-from so_transients.significance.joint_far import joint_background, joint_scan
+from so_transients.significance.joint_far import joint_background, joint_scan, pixel_partners
 
 FS = 100.0
 SPEED = np.deg2rad(1.0)                 # rad/s across the focal plane
@@ -199,3 +199,22 @@ def test_a_pairs_fits_combine_with_their_correlation_and_detect_once():
     assert fits["snr_joint"][0] == pytest.approx(3.5 * np.sqrt(2 / 1.3), rel=0.02)
     assert list(jointly_significant(cands, fits, 4.0)) == [True, False, False]
     assert not jointly_significant(cands, fits, 4.5).any()
+
+
+@pytest.mark.parametrize("groups", [0, 4])
+def test_slides_keep_the_bands_correlation(groups):
+    """Time slides shift a pixel's two detectors alike (each detector its own offset, or
+    in groups): the slides' maps of bands sharing a per-pixel common part (correlation 0.4)
+    stay correlated as the data's are."""
+    rng = np.random.default_rng(9)
+    nsamp, rho = 6000, 0.4
+    common = band_scan("f090", rng, nsamp).snr
+    scans = []
+    for b in ("f090", "f150"):
+        scan = band_scan(b, rng, nsamp)
+        scan.snr = np.sqrt(1 - rho) * band_scan("f090", rng, nsamp).snr + np.sqrt(rho) * common
+        scans.append(scan)
+    partners = pixel_partners(scans)
+    assert np.array_equal(partners[1], np.arange(len(XI)))      # the same pixels here
+    js = joint_scan(scans, 0, SignificanceConfig(n_slides=2, slide_groups=groups), rng)
+    assert js.slide_correlation[0, 1] == pytest.approx(rho, abs=0.06)

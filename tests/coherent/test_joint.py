@@ -73,18 +73,25 @@ def test_joint_map_is_the_best_index_and_nan_where_a_band_has_none():
     assert j[2] == pytest.approx(z[0, 2])      # f150 reaches no detector there
 
 
-def test_bands_sharing_residual_atmosphere_are_combined_at_unit_spread():
-    """Both bands' S/N share a common part (the same residual atmosphere, correlation 0.4
-    here): the measured correlation of their maps recovers it, and each J_alpha is in unit
-    spread with it, 1.18 (sqrt(1 + 0.4)) wide without it at equal weights."""
-    rng = np.random.default_rng(8)
-    rho, nsamp = 0.4, 6000
+def correlated_scans(rng, rho, nsamp=6000):
+    """Both bands' scans whose S/N share a common part on each pixel: correlation ``rho``
+    (the same residual atmosphere)."""
     common = band_scan("f090", rng, nsamp).snr
     scans = []
     for b in ("f090", "f150"):
         scan = band_scan(b, rng, nsamp)
         scan.snr = np.sqrt(1 - rho) * band_scan("f090", rng, nsamp).snr + np.sqrt(rho) * common
         scans.append(scan)
+    return scans
+
+
+def test_bands_sharing_residual_atmosphere_are_combined_at_unit_spread():
+    """Both bands' S/N share a common part (the same residual atmosphere, correlation 0.4
+    here): the measured correlation of their maps recovers it, and each J_alpha is in unit
+    spread with it, 1.18 (sqrt(1 + 0.4)) wide without it at equal weights."""
+    rng = np.random.default_rng(8)
+    rho = 0.4
+    scans = correlated_scans(rng, rho)
     js = joint_scan(scans, 0, SignificanceConfig(n_slides=0), rng, indices=[0.0])
     z = np.stack([m.z for m in js.maps])
     assert band_correlation(z)[0, 1] == pytest.approx(rho, abs=0.05)
@@ -207,13 +214,8 @@ def test_slides_keep_the_bands_correlation(groups):
     in groups): the slides' maps of bands sharing a per-pixel common part (correlation 0.4)
     stay correlated as the data's are."""
     rng = np.random.default_rng(9)
-    nsamp, rho = 6000, 0.4
-    common = band_scan("f090", rng, nsamp).snr
-    scans = []
-    for b in ("f090", "f150"):
-        scan = band_scan(b, rng, nsamp)
-        scan.snr = np.sqrt(1 - rho) * band_scan("f090", rng, nsamp).snr + np.sqrt(rho) * common
-        scans.append(scan)
+    rho = 0.4
+    scans = correlated_scans(rng, rho)
     partners = pixel_partners(scans)
     assert np.array_equal(partners[1], np.arange(len(XI)))      # the same pixels here
     js = joint_scan(scans, 0, SignificanceConfig(n_slides=2, slide_groups=groups), rng)

@@ -110,12 +110,28 @@ def joint_scan(scans, first, cfg: SignificanceConfig, rng, indices=DEFAULT_INDIC
 
 
 def pixel_partners(scans) -> list:
-    """Per band, each detector's nearest detector of the first band on the focal plane (its
-    pixel's partner in a dichroic wafer): slides shift both alike, so that they keep the
-    bands' correlation (the same residual atmosphere) as the data have it."""
+    """Per band, each detector's partner among the first band's: itself in the first band,
+    in the others the nearest on the focal plane not taken yet (its pixel's, in a dichroic
+    wafer; a pixel's two polarizations take one each), else the nearest. Slides shift
+    partners alike, so that they keep the bands' correlation (the same residual
+    atmosphere) as the data have it, while within a band no two detectors slide together
+    that a single band's slides would not."""
     first = scans[0].geometry
     tree = cKDTree(np.c_[first.along, first.across])
-    return [tree.query(np.c_[s.geometry.along, s.geometry.across])[1] for s in scans]
+    out = [np.arange(len(first.along))]
+    for s in scans[1:]:
+        k = min(8, len(first.along))
+        _, near = tree.query(np.c_[s.geometry.along, s.geometry.across], k=k)
+        near = near.reshape(len(s.geometry.along), k)
+        taken = np.zeros(len(first.along), bool)
+        partner = near[:, 0].copy()
+        for d in range(len(partner)):
+            free = near[d][~taken[near[d]]]
+            if len(free):
+                partner[d] = free[0]
+                taken[free[0]] = True
+        out.append(partner)
+    return out
 
 
 def _groups(scan: BandScan, cfg, rng, window):

@@ -83,7 +83,7 @@ class Search:
     maxima: list = field(default_factory=list)     # the noise-only data's own maxima
 
 
-def run_background(states, bands, cfg, scan, sig: SignificanceConfig, vetoes_share,
+def run_background(states, bands, scan, sig: SignificanceConfig, vetoes_share,
                    instant_share, indices):
     search = Search(tuple(bands))
     st = [states[b] for b in bands]
@@ -234,10 +234,10 @@ def main(argv=None):
         st = states["f090"]
         scan, _ = group_scans(st.timestamps, st.aman.boresight.az, st.aman.boresight.el, find)
         searches = {
-            "joint": [run_background(states, ("f090", "f150"), cfg, scan, sig,
+            "joint": [run_background(states, ("f090", "f150"), scan, sig,
                                      coherent.max_single_share, coherent.max_instant_share,
                                      cfg.statistic_indices)],
-            "single": [run_background(states, (b,), cfg, scan, sig, coherent.max_single_share,
+            "single": [run_background(states, (b,), scan, sig, coherent.max_single_share,
                                       coherent.max_instant_share, cfg.statistic_indices)
                        for b in ("f090", "f150")]}
         thr = {}

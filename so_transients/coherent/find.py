@@ -162,14 +162,14 @@ def joint_candidates(snr, dets, names, timestamps, bore_q, xi, eta, scan, direct
         r, s = joint_maxima(bands, maps, rows, coefficients, j, best, cfg.coherent_threshold,
                             window, cfg.max_single_share, cfg.max_instant_share)
         keep = suppress_neighbours(j[r, s], r, s, int(np.ceil(2.0 / cfg.row_step)), 3 * window)
+        weights = [b.weights(rows)[0] for b in bands]
         for row, sample in zip(r[keep], s[keep]):
             ra, dec = sky_position(bands[0].geometry, rows[row], bore_q, first + sample)
-            for (cands, hits), band, m, d in zip(parts, bands, maps, dets):
-                weights, _ = band.weights(rows)
+            for (cands, hits), band, m, d, w in zip(parts, bands, maps, dets, weights):
                 peak = dict(map_z=m.z[row, sample], joint_z=j[row, sample], joint_id=joint_id,
                             spectral_index=cfg.spectral_indices[best[row, sample]],
                             band_correlation=correlation[0, 1], sample=first + sample,
-                            **hit_terms(band.snr, first, band.geometry, rows, weights, row,
+                            **hit_terms(band.snr, first, band.geometry, rows, w, row,
                                         sample, band.beam_sigma, cfg))
                 if not len(peak["hit_dets"]):     # the row reaches none of this band
                     continue

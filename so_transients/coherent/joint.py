@@ -211,13 +211,21 @@ def joint_shares(scans, maps, rows, coefficients, best, peak_rows, peak_samples,
         shifts = scan.geometry.lag_samples + (0 if offsets is None else offsets[b])
         tot, big = point_sums(scan.snr, weights, *row_members(weights), shifts, peak_rows,
                               peak_samples, sign, cyclic=offsets is not None)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            k = np.where(norm[peak_rows] > 0,
-                         coefficients[a, b, peak_rows] / (norm[peak_rows] * m.scale), 0.0)
+        k = term_weight(coefficients, m, a, b, peak_rows)
         total += k * tot
         top = np.maximum(top, k * big)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(total > 0, top / total, 1.0)
+
+
+def term_weight(coefficients, m: BandMap, index, band, rows):
+    """What one unit of band ``band``'s unnormalized sum adds to ``J`` on ``rows`` at
+    ``index``: its coefficient over the row's norm times the map's scale (``n`` x
+    ``scale^2``); 0 on rows the band does not reach."""
+    rows = np.asarray(rows)
+    n = m.n[rows]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, coefficients[index, band, rows] / (n * m.scale**2), 0.0)
 
 
 def joint_maxima(scans, maps, rows, coefficients, j, best, threshold, window,
@@ -239,12 +247,9 @@ def joint_maxima(scans, maps, rows, coefficients, j, best, threshold, window,
         terms, lags = [], []
         for b, (scan, m, w) in enumerate(zip(scans, maps, weights)):
             dets, _, t = sum_terms(scan.snr, w, scan.geometry.lag_samples, row, sample)
-            if m.n[row] > 0:     # a term's part of J: coefficient x term / (norm x scale)
-                terms.append(t * coefficients[best[row, sample], b, row]
-                             / (m.n[row] * m.scale**2))
-                lags.append(scan.geometry.lag_samples[dets])
-        single, instant = shares(np.concatenate(terms or [[]]), np.concatenate(lags or [[]]),
-                                 width)
+            terms.append(t * term_weight(coefficients, m, best[row, sample], b, row))
+            lags.append(scan.geometry.lag_samples[dets])
+        single, instant = shares(np.concatenate(terms), np.concatenate(lags), width)
         keep[k] = single <= max_single_share and instant <= max_instant_share
     return r[keep], s[keep]
 

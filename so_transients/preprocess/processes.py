@@ -41,7 +41,7 @@ from so_transients.detect import spectral_ops
 from so_transients.detect.common_mode import ExcursionConfig, mask_excursions
 from so_transients.detect.jumps import JumpConfig, remove_common_jumps
 from so_transients.significance.far import SignificanceConfig
-from so_transients.significance.joint_far import group_significance
+from so_transients.significance.joint_far import significance_with_joint
 from so_transients.coherent.vetoes import Vetoes
 from so_transients.coherent.sweep_stack import StackSettings
 from so_transients.detect.matched_filter import (
@@ -666,7 +666,7 @@ class TransientSignificance(_Preprocess):
         scan, t = np.asarray(aman[SCAN_FIELD]), np.asarray(aman.timestamps)
         searched_hours = np.count_nonzero(scan >= 0) * np.median(np.diff(t)) / 3600.0
         cfg = replace(self.cfg, n_slides=self.cfg.slides_for(searched_hours))
-        result, live, scale = group_significance(
+        result, live, scale = significance_with_joint(
             aman.transient_snr, t, pointing.boresight_q(aman),
             np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta), scan,
             np.asarray(f.sigma_amp), ~np.asarray(f.dead, bool), np.asarray(f.beam_sigma),

@@ -46,7 +46,7 @@ from so_transients.coherent.statistic import (
 from so_transients.common.scan_geometry import sample_rate as rate_of  # (``sample_rate``: Hz)
 from so_transients.common.step_config import ConfigError, non_negative, positive, share
 from so_transients.significance.slide_groups import (
-    gate_maxima, group_offsets, group_sum, min_group_samples, partial_maps, slide_groups
+    gate_maxima, group_offsets, group_sum, partial_maps, scan_groups
 )
 from so_transients.significance.slide_maxima import SlideSearch
 from so_transients.coherent.vetoes import Vetoes
@@ -146,9 +146,8 @@ def scan_maps(snr, geometry, beam_sigma, sigma_amp, live, first, cfg: Significan
     window = geometry.crossing_samples(beam_sigma)
     min_shift = int(cfg.min_slide_s * geometry.sample_rate)
     slides = cfg.n_slides > 0 and nsamp > 2 * min_shift + 1
-    slid = slide_groups(live, cfg.slide_groups, rng) if slides else None
-    if slid is not None and nsamp < min_group_samples(cfg.slide_groups, min_shift, window):
-        slid = None          # too short to keep the groups apart: each detector on its own
+    slid = (scan_groups(live, cfg.slide_groups, nsamp, min_shift, window, rng) if slides
+            else None)
     weights, norm = row_weights(geometry, rows, beam_sigma, sigma_amp, live)
     cyclic, partial = cyclic_map(snr, geometry, rows, beam_sigma, sigma_amp, live, weights,
                                  norm, slid)

@@ -40,9 +40,7 @@ from so_transients.coherent.statistic import (
 from so_transients.significance.far import (
     Background, SignificanceConfig, cyclic_map, gated_sources, significance_by_band
 )
-from so_transients.significance.slide_groups import (
-    group_offsets, min_group_samples, slide_groups
-)
+from so_transients.significance.slide_groups import group_offsets, scan_groups
 from so_transients.significance.slide_maxima import SlideSearch
 
 
@@ -83,7 +81,9 @@ def joint_scan(scans, first, cfg: SignificanceConfig, rng, indices=DEFAULT_INDIC
     window = scan_window(scans)
     cyclic, partial, slid, maps = [], [], [], []
     partners = pixel_partners(scans)
-    first_groups = _groups(scans[0], cfg, rng, window)
+    first_groups = scan_groups(scans[0].live, cfg.slide_groups, scans[0].snr.shape[1],
+                               int(cfg.min_slide_s * scans[0].geometry.sample_rate), window,
+                               rng)
     for s, partner in zip(scans, partners):
         groups = None if first_groups is None else first_groups[partner]
         if groups is not None and len(np.unique(groups)) < int(first_groups.max()) + 1:
@@ -132,16 +132,6 @@ def pixel_partners(scans) -> list:
                 taken[free[0]] = True
         out.append(partner)
     return out
-
-
-def _groups(scan: BandScan, cfg, rng, window):
-    """The band's slide groups (None: each detector slid on its own)."""
-    nsamp = scan.snr.shape[1]
-    min_shift = int(cfg.min_slide_s * scan.geometry.sample_rate)
-    groups = slide_groups(scan.live, cfg.slide_groups, rng)
-    if groups is not None and nsamp < min_group_samples(cfg.slide_groups, min_shift, window):
-        return None
-    return groups
 
 
 def _inverted_maxima(js: JointScan, cfg, max_single_share):
@@ -257,9 +247,9 @@ def joint_significance(snr, dets, names, timestamps, bore_q, xi, eta, scan, sigm
     return dict(**out, live_hours=background.slide_hours)
 
 
-def group_significance(snr, timestamps, bore_q, xi, eta, scan, sigma_amp, live, beam_sigma,
-                       bands, cands, cfg: SignificanceConfig, vetoes, stacking=None,
-                       indices=DEFAULT_INDICES):
+def significance_with_joint(snr, timestamps, bore_q, xi, eta, scan, sigma_amp, live,
+                            beam_sigma, bands, cands, cfg: SignificanceConfig, vetoes,
+                            stacking=None, indices=DEFAULT_INDICES):
     """:func:`so_transients.significance.far.significance_by_band` of a group's candidates,
     its joint-band ones (``joint_id`` >= 0, from ``transient_find``'s ``joint_bands``) ranked
     among the joint statistic's background (:func:`joint_significance`; ``indices``: the

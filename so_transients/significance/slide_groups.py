@@ -47,6 +47,16 @@ def slide_groups(live, n_groups, rng) -> np.ndarray | None:
     return out
 
 
+def scan_groups(live, n_groups, nsamp, min_shift, window, rng) -> np.ndarray | None:
+    """:func:`slide_groups` for a scan of ``nsamp`` samples, or None (each detector slid on
+    its own) when the scan is too short to keep the groups apart
+    (:func:`min_group_samples`)."""
+    groups = slide_groups(live, n_groups, rng)
+    if groups is not None and nsamp < min_group_samples(n_groups, min_shift, window):
+        return None
+    return groups
+
+
 def group_offsets(groups, ndet, nsamp, min_shift, rng, n_slides=None) -> np.ndarray:
     """(ndet,) cyclic offsets (samples) of one slide, or (n_slides, ndet) of that many:
     each group's detectors shifted alike, by an offset in ``[min_shift, nsamp -

@@ -1,5 +1,7 @@
-"""Shared fixtures: small simulated datasets written once per test session."""
+"""Shared fixtures: small simulated datasets written once per test session, and folders for a
+module's own data that go when its tests are done."""
 import os
+import shutil
 
 import pytest
 
@@ -51,6 +53,22 @@ def run_imperfect_sim(path, flare, duration, dead_mode="nan", seed=43):
                                    "noisy_fraction": 0.02, "noisy_factor": 10.0},
                    glitches={"enabled": True, "rate_per_hour": 200},
                    flares={"list": [flare]})
+
+
+@pytest.fixture(scope="module")
+def module_tmp(tmp_path_factory):
+    """``module_tmp(name)``: a new folder for a module-scoped fixture's data, deleted once
+    the module's tests are done. The suite simulates and processes over 10 GB in all; kept to
+    the end of the session, that fills a small CI disk."""
+    made = []
+
+    def mktemp(name):
+        made.append(tmp_path_factory.mktemp(name))
+        return made[-1]
+
+    yield mktemp
+    for path in made:
+        shutil.rmtree(path, ignore_errors=True)
 
 
 @pytest.fixture(scope="session")

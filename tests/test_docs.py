@@ -12,8 +12,8 @@ import step_docs  # noqa: E402
 
 
 @pytest.fixture(scope="module")
-def html(tmp_path_factory):
-    out = tmp_path_factory.mktemp("docs") / "html"
+def html(module_tmp):
+    out = module_tmp("docs") / "html"
     run = subprocess.run([sys.executable, "-m", "sphinx", "-W", "--keep-going", "-q", "-b",
                           "html", str(ROOT / "docs"), str(out)], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr

@@ -36,8 +36,8 @@ def campaign(out, *extra):
 
 
 @pytest.fixture(scope="module")
-def quick(tmp_path_factory):
-    out = tmp_path_factory.mktemp("campaign") / "quick"
+def quick(module_tmp):
+    out = module_tmp("campaign") / "quick"
     run = campaign(out)
     assert run.returncode == 0, run.stderr[-3000:]
     return out, run

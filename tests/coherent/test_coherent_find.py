@@ -132,11 +132,11 @@ def coherent_pipe():
 
 
 @pytest.fixture(scope="module")
-def coherent_site_run(tmp_path_factory, two_flare_dataset):
+def coherent_site_run(module_tmp, two_flare_dataset):
     """Five minutes of w16 at f090 with two flares, the shipped config in coherent mode."""
     from so_transients.site.pipeline import PAPER, run_site_pipeline, write_site_config
 
-    root = tmp_path_factory.mktemp("coherent")
+    root = module_tmp("coherent")
     sim = two_flare_dataset
     config = write_site_config(sim.context.parent, path=root / "preprocess.yaml",
                                overrides=COHERENT, results=root / "preprocess",

@@ -47,10 +47,10 @@ def test_two_crossings_stack_unless_one_makes_the_sum():
 
 
 @pytest.fixture(scope="module")
-def slow_flare(tmp_path_factory):
+def slow_flare(module_tmp):
     """Ten minutes of w16 at f090 (white noise and glitches) with a 90 mJy flare rising and
     decaying over 600 s: each crossing alone reaches Z of about 4 at best."""
-    return run_sim(tmp_path_factory.mktemp("slow"), seed=44, observation={"duration": 600.0},
+    return run_sim(module_tmp("slow"), seed=44, observation={"duration": 600.0},
                    instrument={"tubes": ["i1"], "wafers": ["w16"], "bands": ["f090"]},
                    atmosphere={"enabled": False}, cmb={"enabled": False},
                    flares={"list": [FLARE]})

@@ -33,10 +33,10 @@ def db(*argv) -> int:
 
 
 @pytest.fixture(scope="module")
-def real_run(tmp_path_factory):
+def real_run(module_tmp):
     """Two minutes of w16 in both bands with one bright flare, through the whole chain; the
     events folder next to the catalogue, as ``make demo`` leaves them."""
-    root = tmp_path_factory.mktemp("db_chain")
+    root = module_tmp("db_chain")
     run_sim(root, seed=5, observation={"duration": 120.0}, scan={"sweep_time": 12.0},
             cmb={"enabled": False}, flares={"list": [FLARE]})
     config = write_site_config(root, template=PAPER)

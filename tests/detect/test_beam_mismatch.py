@@ -72,11 +72,11 @@ K_TRUTH = float(norm.isf(0.01 / (2 * 3 * 4 * 2)))
 
 
 @pytest.fixture(scope="module")
-def searches(tmp_path_factory):
+def searches(module_tmp):
     """100 s of w16 at f090, white noise only, four 3 Jy flares of t_rise 20 s; the
     transient steps with templates of the nominal width and of each of SCALES times it:
     ({scale: {source_id: detection}}, truth, the group's AxisManager)."""
-    sim = run_sim(tmp_path_factory.mktemp("beam"), seed=17, observation={"duration": 100.0},
+    sim = run_sim(module_tmp("beam"), seed=17, observation={"duration": 100.0},
                   instrument={"tubes": ["i1"], "wafers": ["w16"], "bands": ["f090"]},
                   atmosphere={"enabled": False}, cmb={"enabled": False},
                   flares={"list": FLARES})

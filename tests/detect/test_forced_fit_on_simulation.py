@@ -159,10 +159,10 @@ class Group:
 
 
 @pytest.fixture(scope="module")
-def sources(tmp_path_factory):
+def sources(module_tmp):
     """600 s of w16 at f090 (white noise; no atmosphere, no CMB): three flares and three
     steady sources at 0.3-1.5 Jy, at least 40' apart."""
-    group = Group(run_sim(tmp_path_factory.mktemp("forced"), seed=4,
+    group = Group(run_sim(module_tmp("forced"), seed=4,
                           observation={"duration": 600.0}, instrument=W16,
                           atmosphere={"enabled": False}, cmb={"enabled": False},
                           point_sources={"list": STEADY}, flares={"list": FLARES}))
@@ -173,9 +173,9 @@ def sources(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def bright(tmp_path_factory):
+def bright(module_tmp):
     """200 s of w16 at f090 (white noise): nine 5 Jy steady sources."""
-    return Group(run_sim(tmp_path_factory.mktemp("forced_bright"), seed=4,
+    return Group(run_sim(module_tmp("forced_bright"), seed=4,
                          observation={"duration": 200.0}, instrument=W16,
                          atmosphere={"enabled": False}, cmb={"enabled": False},
                          point_sources={"list": BRIGHT}))

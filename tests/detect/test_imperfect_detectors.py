@@ -24,9 +24,9 @@ STEPS = [{"name": "transient_filter", "process": {}, "calc": True, "save": True}
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
+def dataset(module_tmp):
     """130 s of w16 at f090, white noise only, a 3 Jy flare on detector p215A's path."""
-    return run_sim(tmp_path_factory.mktemp("imperfect"), seed=9,
+    return run_sim(module_tmp("imperfect"), seed=9,
                    observation={"duration": 130.0}, instrument={"bands": ["f090"]},
                    atmosphere={"enabled": False}, cmb={"enabled": False},
                    flares={"list": [{"at_detector": "w16_f090_p215A", "at_time": FLARE_TIME,
@@ -35,9 +35,9 @@ def dataset(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def long_dataset(tmp_path_factory):
+def long_dataset(module_tmp):
     """300 s (sotodlib's flag_turnarounds needs a few scans), white noise, a 15 Jy flare."""
-    return run_sim(tmp_path_factory.mktemp("imperfect_long"), seed=9,
+    return run_sim(module_tmp("imperfect_long"), seed=9,
                    observation={"duration": 300.0}, instrument={"bands": ["f090"]},
                    atmosphere={"enabled": False}, cmb={"enabled": False},
                    flares={"list": [{"at_detector": "w16_f090_p215A", "at_time": 150.0,

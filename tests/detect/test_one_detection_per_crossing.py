@@ -113,12 +113,12 @@ START, DURATION = 1_700_000_000.0, 180.0
 
 
 @pytest.fixture(scope="module")
-def uhf_paper(tmp_path_factory):
+def uhf_paper(module_tmp):
     """3 minutes of UHF wafer w01 (tube c1) at elevation 60, white noise, six 3-8 Jy flares
     and two 3-6 Jy steady sources, searched in paper mode in both bands: (dataset, every
     candidate). Without joining, five crossings of this sky give two detections each (three
     in f220, one in f280, one of a steady source)."""
-    sim = run_sim(tmp_path_factory.mktemp("uhf_crossings"), seed=1,
+    sim = run_sim(module_tmp("uhf_crossings"), seed=1,
                   observation={"start": START, "duration": DURATION},
                   instrument={"tubes": ["c1"], "wafers": ["w01"]}, scan={"el": 60.0},
                   atmosphere={"enabled": False}, cmb={"enabled": False},

@@ -13,8 +13,8 @@ STEPS = [{"name": "transient_filter", "process": {}, "calc": True, "save": True}
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    return run_sim(tmp_path_factory.mktemp("coverage"), seed=5,
+def dataset(module_tmp):
+    return run_sim(module_tmp("coverage"), seed=5,
                    observation={"duration": 200.0}, instrument={"bands": ["f090"]},
                    atmosphere={"enabled": False}, cmb={"enabled": False})
 
@@ -78,13 +78,13 @@ def test_a_whole_observation_is_searched_up_to_the_turnarounds(dataset):
 
 
 @pytest.fixture(scope="module")
-def scan_end_dataset(tmp_path_factory):
+def scan_end_dataset(module_tmp):
     """130 s of w16 f090, white noise only. The first sweep's constant-velocity part ends at
     86.89 s and the second's starts at 90 s (3.11 s turnaround, scan pattern defaults); two
     1.5 Jy flares (t_r = 1 s) are centred where p215A points 1 s before and 1 s after it."""
     flares = [{"at_detector": "w16_f090_p215A", "at_time": t, "t_peak": t,
                "s_peak_mjy": 1500.0, "t_rise": 1.0} for t in (85.89, 91.0)]
-    return run_sim(tmp_path_factory.mktemp("scan_ends"), seed=13,
+    return run_sim(module_tmp("scan_ends"), seed=13,
                    observation={"duration": 130.0}, instrument={"bands": ["f090"]},
                    atmosphere={"enabled": False}, cmb={"enabled": False},
                    flares={"list": flares})
@@ -104,9 +104,9 @@ def test_a_crossing_one_second_from_a_turnaround_is_found(scan_end_dataset, t_fl
 
 
 @pytest.fixture(scope="module")
-def two_band_dataset(tmp_path_factory):
+def two_band_dataset(module_tmp):
     """130 s of w16, both MF bands, white noise only, a 3 Jy flare on p215A's path."""
-    return run_sim(tmp_path_factory.mktemp("two_bands"), seed=9,
+    return run_sim(module_tmp("two_bands"), seed=9,
                    observation={"duration": 130.0},
                    atmosphere={"enabled": False}, cmb={"enabled": False},
                    flares={"list": [{"at_detector": "w16_f090_p215A", "at_time": 40.0,

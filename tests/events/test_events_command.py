@@ -29,13 +29,13 @@ K_POINTS = float(norm.isf(0.01 / (2 * 8)))
 
 
 @pytest.fixture(scope="module")
-def events_run(tmp_path_factory):
+def events_run(module_tmp):
     """Four minutes of w16 in both bands, 12 s sweeps (a crossing every 12 s), atmosphere
     and white noise, a slow flare with spectral index -1 and a fast flat one; the site
     pipeline, then ``so-transients events`` on its config. (Without the atmosphere the
     shipped config's pca_filter takes the bright flare itself as a mode: f090 loses a
     quarter of its flux.)"""
-    root = tmp_path_factory.mktemp("events")
+    root = module_tmp("events")
     sim = run_sim(root, seed=31, observation={"duration": 240.0},
                   scan={"sweep_time": 12.0},
                   cmb={"enabled": False}, flares={"list": [SLOW, FAST]})

@@ -34,12 +34,12 @@ def run(dataset, steps, plot_dir):
 
 
 @pytest.fixture(scope="module")
-def runs(bright_source_dataset, tmp_path_factory):
+def runs(bright_source_dataset, module_tmp):
     """The bright flare's group searched in each mode (coherent: with transient_significance
     inserted before transient_fit, which moves the fit's step index)."""
     out = {}
     for mode, steps in (("paper", PAPER), ("coherent", COHERENT)):
-        plot_dir = tmp_path_factory.mktemp(f"plots_{mode}")
+        plot_dir = module_tmp(f"plots_{mode}")
         out[mode] = run(bright_source_dataset, steps, plot_dir), plot_dir
     return out
 

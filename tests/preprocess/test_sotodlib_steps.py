@@ -26,10 +26,10 @@ def as_sotodlibs(step):
 
 
 @pytest.fixture(scope="module", params=[3, 9])
-def wafer(request, tmp_path_factory):
+def wafer(request, module_tmp):
     """Five minutes of a real wafer after the production config's steps before the
     time-constant deconvolution (NaN detectors and samples still in)."""
-    sim = simulate_seed(tmp_path_factory.mktemp("steps"), seed=request.param, duration=300.0,
+    sim = simulate_seed(module_tmp("steps"), seed=request.param, duration=300.0,
                         flares=[])
     aman = core.Context(str(sim.context)).get_obs(sim.obs_ids[0])
     Pipeline(PIPE[:TIMECONST]).run(aman)

@@ -19,8 +19,8 @@ PIPE = [{"name": "detrend", "process": {"method": "median"}},
 
 
 @pytest.fixture(scope="module")
-def wafer(tmp_path_factory):
-    root = tmp_path_factory.mktemp("jumps")
+def wafer(module_tmp):
+    root = module_tmp("jumps")
     sim = simulate_seed(root, seed=3, duration=180.0, flares=[])
     ctx = core.Context(str(sim.context))
     aman = ctx.get_obs(sim.obs_ids[0])

@@ -87,12 +87,12 @@ def band_background_of(aman):
 
 
 @pytest.fixture(scope="module")
-def noise_runs(tmp_path_factory):
+def noise_runs(module_tmp):
     """Per seed: the candidates' Z, chi-squared flag and far, the data's live time (hours,
     from the live time the step stores) and the rebuilt background."""
     runs = []
     for seed in SEEDS:
-        sim = run_sim(tmp_path_factory.mktemp(f"noise{seed}"), seed=seed,
+        sim = run_sim(module_tmp(f"noise{seed}"), seed=seed,
                       observation={"duration": 600.0},
                       instrument={"tubes": ["i1"], "wafers": ["w16"], "bands": ["f090"]},
                       glitches={"enabled": True})

@@ -27,9 +27,9 @@ def with_significance(process_pipe, **calc):
 
 
 @pytest.fixture(scope="module")
-def significance_run(tmp_path_factory, two_flare_dataset):
+def significance_run(module_tmp, two_flare_dataset):
     """Five minutes of w16 at f090, two bright flares; the site pipeline with the step."""
-    root = tmp_path_factory.mktemp("significance")
+    root = module_tmp("significance")
     sim = two_flare_dataset
     config = write_site_config(sim.context.parent, path=root / "preprocess.yaml",
                                results=root / "preprocess", template=PAPER)

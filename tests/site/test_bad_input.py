@@ -16,8 +16,8 @@ FLARE_TIME = 40.0
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    return run_sim(tmp_path_factory.mktemp("bad"), seed=9, observation={"duration": 130.0},
+def dataset(module_tmp):
+    return run_sim(module_tmp("bad"), seed=9, observation={"duration": 130.0},
                    instrument={"bands": ["f090"]}, atmosphere={"enabled": False},
                    cmb={"enabled": False},
                    flares={"list": [{"at_detector": "w16_f090_p215A", "at_time": FLARE_TIME,

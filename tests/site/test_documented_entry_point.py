@@ -36,9 +36,9 @@ def readme_blocks():
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
+def dataset(module_tmp):
     """Four minutes of w16 at f090 with the 3 Jy flare of ``BRIGHT_FLARE``."""
-    sim = run_sim(tmp_path_factory.mktemp("documented"), seed=21,
+    sim = run_sim(module_tmp("documented"), seed=21,
                   observation={"duration": 240.0}, instrument={"bands": ["f090"]},
                   flares={"list": [BRIGHT_FLARE]})
     context = yaml.safe_load(sim.context.read_text())
@@ -47,10 +47,10 @@ def dataset(tmp_path_factory):
 
 
 @pytest.fixture(scope="module", params=["paper", "coherent"])
-def run(request, dataset, tmp_path_factory):
+def run(request, dataset, module_tmp):
     """The site pipeline on ``dataset``: the shipped config's standard steps, then the
     README's transient steps for the mode, run as the README says."""
-    root = tmp_path_factory.mktemp(request.param)
+    root = module_tmp(request.param)
     config = write_site_config(dataset.context.parent, path=root / "preprocess.yaml",
                                results=root / "preprocess")
     cfg = yaml.safe_load(config.read_text())

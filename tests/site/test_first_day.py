@@ -44,10 +44,10 @@ def test_the_package_under_test_is_this_checkout():
 
 
 @pytest.fixture(scope="module")
-def small_run(tmp_path_factory):
+def small_run(module_tmp):
     """200 s of w16 at f090 with a 40 Jy flare placed through a readout id, run through the
     site pipeline with one process."""
-    root = tmp_path_factory.mktemp("first_day") / "data"
+    root = module_tmp("first_day") / "data"
     sim = run_sim(root, seed=3, observation={"duration": 200.0},
                   instrument={"bands": ["f090"]}, **QUIET_SKY,
                   flares={"list": [{"at_detector": "w16_f090_0430", "at_time": 135.0,
@@ -157,9 +157,9 @@ def test_catalog_of_a_complete_archive(small_run, tmp_path, capsys):
 
 
 @pytest.fixture(scope="module")
-def broken_run(tmp_path_factory):
+def broken_run(module_tmp):
     """w16 in both MF bands with the f150 TOD file truncated, run once."""
-    root = tmp_path_factory.mktemp("broken") / "data"
+    root = module_tmp("broken") / "data"
     sim = run_sim(root, seed=4, observation={"duration": 200.0}, **QUIET_SKY)
     obs = sim.obs_ids[0]
     tod = root / "tod" / obs / f"{obs}_w16_f150.h5"

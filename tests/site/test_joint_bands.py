@@ -39,9 +39,9 @@ def site_config(root, name, joint):
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
+def runs(module_tmp):
     """Five minutes of w16, f090 and f150, with ``FLARES``, searched both ways."""
-    root = tmp_path_factory.mktemp("joint")
+    root = module_tmp("joint")
     run_sim(root, seed=7, observation={"duration": 300.0},
             instrument={"bands": ["f090", "f150"]}, flares={"list": FLARES})
     out = {}

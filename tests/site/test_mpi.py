@@ -40,10 +40,10 @@ def same(a: Table, b: Table):
 
 
 @pytest.fixture(scope="module")
-def serial_and_mpi(tmp_path_factory, noisy_dataset):
+def serial_and_mpi(module_tmp, noisy_dataset):
     """The shipped site config on five minutes of one wafer in two bands (two groups),
     once serially and once under mpiexec -n 2."""
-    root = tmp_path_factory.mktemp("mpi")
+    root = module_tmp("mpi")
     configs = {}
     for name in ("serial", "mpi"):
         configs[name] = write_site_config(noisy_dataset.context.parent,

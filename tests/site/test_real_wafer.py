@@ -15,9 +15,9 @@ MINUTES = 4.0
 
 
 @pytest.fixture(scope="module", params=[3, 4])
-def wafer(request, tmp_path_factory):
+def wafer(request, module_tmp):
     seed = request.param
-    root = tmp_path_factory.mktemp(f"real_wafer_{seed}")
+    root = module_tmp(f"real_wafer_{seed}")
     duration = MINUTES * 60
     return root, simulate_seed(root / "data", seed, duration,
                                flare_list(seed, duration, n_bright=4, n_faint=0))

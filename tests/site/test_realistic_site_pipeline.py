@@ -29,8 +29,8 @@ MAX_FALSE = 4
 
 
 @pytest.fixture(scope="module")
-def realistic_run(tmp_path_factory):
-    root = tmp_path_factory.mktemp("realistic")
+def realistic_run(module_tmp):
+    root = module_tmp("realistic")
     sim = simulate(load_config(CONFIGS / "sim_realistic.yaml", {"output": str(root)}),
                    progress=False)
     known = root / "truth" / "point_sources.ecsv"        # the steady source is catalogued

@@ -13,8 +13,8 @@ pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def config(tmp_path_factory, two_flare_dataset):
-    root = tmp_path_factory.mktemp("run")
+def config(module_tmp, two_flare_dataset):
+    root = module_tmp("run")
     return write_site_config(two_flare_dataset.context.parent, path=root / "preprocess.yaml",
                              results=root / "preprocess", template=PAPER)
 

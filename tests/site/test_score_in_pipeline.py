@@ -14,8 +14,8 @@ MINUTES = 3.0
 
 
 @pytest.fixture(scope="module")
-def scored(tmp_path_factory):
-    root = tmp_path_factory.mktemp("score_pipeline")
+def scored(module_tmp):
+    root = module_tmp("score_pipeline")
     duration = MINUTES * 60
     sim = simulate_seed(root / "data", 9, duration, flare_list(9, duration, n_bright=4,
                                                                 n_faint=0))

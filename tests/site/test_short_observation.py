@@ -86,9 +86,9 @@ def test_only_scanspeed_turnaround_steps_are_checked():
 
 
 @pytest.fixture(scope="module")
-def short_run(tmp_path_factory):
+def short_run(module_tmp):
     """Two minutes of w16 at f090 with two bright flares, and the shipped config on it."""
-    root = tmp_path_factory.mktemp("short")
+    root = module_tmp("short")
     sim = run_sim(root / "data", seed=7, observation={"duration": 120.0},
                   instrument={"tubes": ["i1"], "wafers": ["w16"], "bands": ["f090"]},
                   flares={"n": 2, "s_peak_mjy": [2000, 3000], "t_rise": [2, 10]})

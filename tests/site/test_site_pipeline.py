@@ -24,9 +24,9 @@ BRIGHT_FLUX = 40000.0    # mJy: far above the glitch step's n_sig = 10 per sampl
 
 
 @pytest.fixture(scope="module")
-def flare_run(tmp_path_factory):
+def flare_run(module_tmp):
     """Five minutes of w16 at f090 with bright flares, a 40 Jy flare and cosmic-ray glitches."""
-    root = tmp_path_factory.mktemp("flares")
+    root = module_tmp("flares")
     sim = run_sim(root, seed=21, observation={"duration": 300.0},
                   instrument={"bands": ["f090"]},
                   flares={"n": 4, "s_peak_mjy": [2000, 5000], "t_rise": [0.5, 10],

@@ -17,8 +17,8 @@ FLARE = {"at_detector": "w00_f280_p120A", "at_time": 100.0, "t_peak": 100.0,
 
 
 @pytest.fixture(scope="module")
-def uhf(tmp_path_factory):
-    return run_sim(tmp_path_factory.mktemp("uhf"), seed=31, observation={"duration": 180.0},
+def uhf(module_tmp):
+    return run_sim(module_tmp("uhf"), seed=31, observation={"duration": 180.0},
                    instrument={"tubes": ["c1"], "wafers": ["w00"], "bands": ["f280"]},
                    glitches={"enabled": True, "rate_per_hour": 200},
                    flares={"list": [FLARE]})

@@ -11,7 +11,9 @@ as the campaign's false-alarm budget counts it (its statistic within the budget,
 cut; the budget itself (from the time slides and the sign-inverted data) does not move. Prints
 the thresholds per t_r and the noise-only detections within the budget, per cut; then the same
 at the paper's fitted S/N >= 5 without the budget, with the noise-only and sign-inverted
-detections.
+detections. The thresholds within the budget are written to the campaign's results folder,
+``thresholds_far_score.ecsv`` (no cut) and ``thresholds_far_score<cut>.ecsv``, for
+``studies/sensitivity_timescale.py``.
 """
 from __future__ import annotations
 
@@ -87,6 +89,9 @@ def main(argv=None):
                          & (True if cut is None else np.asarray(t["real_score"]) >= cut)).sum())
                     for t in (noise, inverted))
         rows.append((cut, thresholds, n_noise, at_snr, n_fit))
+        thresholds.meta["real_score_cut"] = cut
+        thresholds.write(results / f"thresholds_far_score{'' if cut is None else f'{cut:g}'}.ecsv",
+                         overwrite=True)
     print_table(rows, 1, 2, f"noise-only within the budget ({sum(hours.values()):.0f} wbh)")
     print("\nAt the paper's fitted S/N >= 5 (no budget):\n")
     print_table(rows, 3, 4, f"noise-only and inverted detections "

@@ -137,29 +137,45 @@ def write_figures(folder, eff, residuals, noise_far=None, wafer_hours=None):
 
 
 def plot_sensitivity_timescale(path, curves: dict, note=""):
+    """:func:`sensitivity_timescale_figure` written to ``path``."""
+    fig = sensitivity_timescale_figure(curves, note)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def sensitivity_timescale_figure(curves: dict, note=""):
     """The 90 % threshold (``s90`` +- ``s90_err``, mJy) against the flare's duration
-    (2 t_r: rise and decay), one panel per band, one line per campaign: ``curves`` maps a
-    label to its ``thresholds*.ecsv`` table (:func:`~so_transients.campaign.report.
-    threshold_table`). ``note``: a line under the panels (the false-alarm rate)."""
-    bands = sorted({str(b) for t in curves.values() for b in t["band"]})
+    (2 t_r: rise and decay), one panel per band (in the order the curves first name them),
+    one line per campaign, in one colour and style on every panel: ``curves`` maps a label
+    to its ``thresholds*.ecsv`` table (:func:`~so_transients.campaign.report.
+    threshold_table`). ``note``: lines under the panels (the false-alarm rate)."""
+    bands = list(dict.fromkeys(str(b) for t in curves.values() for b in t["band"]))
     fig, axes = _panels(bands)
     styles = ["o-", "s--", "^-.", "d:", "v-", "x--"]
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    top = 0.0
     for ax, band in zip(axes, bands):
-        for (label, table), style in zip(curves.items(), styles):
+        for k, (label, table) in enumerate(curves.items()):
             rows = table[table["band"] == band]
             rows = rows[np.isfinite(np.asarray(rows["s90"], float))]
             if not len(rows):
                 continue
             rows.sort("t_rise")
             ax.errorbar(2 * np.asarray(rows["t_rise"], float), rows["s90"], yerr=rows["s90_err"],
-                        fmt=style, ms=4, capsize=2, label=label)
+                        fmt=styles[k % len(styles)], color=colors[k % len(colors)], ms=4,
+                        capsize=2, label=label)
+            top = max(top, float(np.max(np.asarray(rows["s90"]) + np.asarray(rows["s90_err"]))))
         ax.set(xscale="log", xlabel="flare duration $2 t_r$ (s)",
                ylabel="90 % detection threshold $S_p$ (mJy)", title=band)
-        ax.set_ylim(bottom=0)
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=7)
-    fig.tight_layout(rect=(0, 0.05 if note else 0, 1, 1))
+    left = min(ax.get_xlim()[0] for ax in axes)
+    right = max(ax.get_xlim()[1] for ax in axes)
+    for ax in axes:                         # one scale: the panels compare at a glance
+        ax.set_ylim(0, 1.05 * top)
+        ax.set_xlim(left, right)
+    lines = note.count("\n") + 1 if note else 0
+    fig.tight_layout(rect=(0, 0.03 * lines, 1, 1))
     if note:
         fig.text(0.5, 0.01, note, ha="center", va="bottom", fontsize=8)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    return fig

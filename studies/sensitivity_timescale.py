@@ -1,15 +1,16 @@
 """The 90 % detection threshold against the flare's duration, as the map-domain surveys quote
 their sensitivity: one line per campaign, one panel per band.
 
+    C=data/campaign_coherent_far P=data/campaign_paper_far_scored r=results
     python studies/sensitivity_timescale.py \\
-        "coherent mode=data/campaign_coherent_far/results/thresholds_far.ecsv" \\
-        "paper mode=data/campaign_paper_far/results/thresholds_far.ecsv" \\
-        --far 0.083 -o docs/results/sensitivity_timescale.png
-
-        --joint data/joint_bands/thresholds.ecsv   # the joint-band search, its own panels
+      "coherent mode=$C/$r/thresholds_far.ecsv,${C}_slow/$r/thresholds_far.ecsv" \\
+      "paper mode=$P/$r/thresholds_far_score.ecsv,${P}_slow/$r/thresholds_far_score.ecsv" \\
+      "paper, score >= 0.5=$P/$r/thresholds_far_score0.5.ecsv,${P}_slow/$r/thresholds_far_score0.5.ecsv" \\
+      --joint data/joint_bands/thresholds.ecsv --far 0.083 -o docs/results/sensitivity_timescale.png
 
 Each argument is ``LABEL=TABLE``: a campaign's threshold table (``thresholds.ecsv``,
-``thresholds_far.ecsv`` or ``thresholds_equal_rate.ecsv`` of its results folder; tables of
+``thresholds_far.ecsv`` or ``thresholds_equal_rate.ecsv`` of its results folder, or
+``thresholds_far_score*.ecsv`` of ``studies/score_thresholds.py``; tables of
 several campaigns of one label, e.g. a grid and its slow rows, are joined when given as
 ``LABEL=TABLE1,TABLE2``). ``--far``: the false-alarm rate the thresholds hold, per
 wafer-band-hour; the figure states it per LAT-day too (36 MF and UHF wafer-bands, 24 hours).
@@ -66,7 +67,8 @@ def main(argv=None):
         label, _, paths = item.rpartition("=")   # a label may hold "="
         if not label or not paths:
             p.error(f"{item!r}: expected LABEL=TABLE")
-        curves[label] = vstack([Table.read(path) for path in paths.split(",")])
+        curves[label] = vstack([Table.read(path) for path in paths.split(",")],
+                               metadata_conflicts="silent")   # each table its own digest
     per_day = args.far * LAT_WAFER_BANDS * 24
     note = (f"false-alarm rate {args.far:.3g} per wafer-band-hour = {per_day:.0f} per LAT-day "
             f"({LAT_WAFER_BANDS} MF and UHF wafer-bands)")

@@ -207,7 +207,7 @@ def joint_shares(scans, maps, rows, coefficients, best, peak_rows, peak_samples,
     a = best[peak_rows, peak_samples].astype(int)
     total, top = np.zeros(len(peak_rows)), np.zeros(len(peak_rows))
     for b, (scan, m) in enumerate(zip(scans, maps)):
-        weights, norm = scan.weights(rows)
+        weights, _ = scan.weights(rows)      # the row's norm is in term_weight
         shifts = scan.geometry.lag_samples + (0 if offsets is None else offsets[b])
         tot, big = point_sums(scan.snr, weights, *row_members(weights), shifts, peak_rows,
                               peak_samples, sign, cyclic=offsets is not None)

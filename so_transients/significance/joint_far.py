@@ -81,9 +81,10 @@ def joint_scan(scans, first, cfg: SignificanceConfig, rng, indices=DEFAULT_INDIC
     window = scan_window(scans)
     cyclic, partial, slid, maps = [], [], [], []
     partners = pixel_partners(scans)
+    fs = scans[0].geometry.sample_rate
+    min_shift = int(cfg.min_slide_s * fs)
     first_groups = scan_groups(scans[0].live, cfg.slide_groups, scans[0].snr.shape[1],
-                               int(cfg.min_slide_s * scans[0].geometry.sample_rate), window,
-                               rng)
+                               min_shift, window, rng)
     for s, partner in zip(scans, partners):
         groups = None if first_groups is None else first_groups[partner]
         if groups is not None and len(np.unique(groups)) < int(first_groups.max()) + 1:
@@ -99,10 +100,8 @@ def joint_scan(scans, first, cfg: SignificanceConfig, rng, indices=DEFAULT_INDIC
     coefficients, _ = map_coefficients([s.band for s in scans], maps, indices)
     j, best = joint_map(np.stack([m.z for m in maps]), coefficients)
     out = JointScan(first, rows, scans, maps, coefficients, j, best, window, tuple(indices))
-    fs = scans[0].geometry.sample_rate
     out.data_live_s = np.any(np.isfinite(j), axis=0).sum() / fs
     out.inverted = _inverted_maxima(out, cfg, max_single_share)
-    min_shift = int(cfg.min_slide_s * fs)
     nsamp = j.shape[1]
     if cfg.n_slides and nsamp > 2 * min_shift + 1:
         _slide(out, cyclic, partial, slid, partners, cfg, rng, min_shift, max_single_share)

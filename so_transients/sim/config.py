@@ -225,6 +225,8 @@ class CalibrationConfig:
 class TimeConstantConfig:
     tau_ms: Any = None              # None: instantaneous detectors; a value or [low, high]
                                     # log-uniform range, or {band: value or range}
+    metadata_error: float = 0.0     # rms fractional error of det_cal's tau_eff (Gaussian)
+    metadata_nan: float = 0.0       # fraction of detectors whose det_cal tau_eff is NaN
 
     def __post_init__(self):
         if isinstance(self.tau_ms, dict):
@@ -235,6 +237,9 @@ class TimeConstantConfig:
                            for b, v in self.tau_ms.items()}
         elif self.tau_ms is not None:
             self.tau_ms = _check_range("time_constants.tau_ms", self.tau_ms)
+        if self.metadata_error < 0:
+            raise ValueError("time_constants.metadata_error must be >= 0")
+        _check_fraction("time_constants.metadata_nan", self.metadata_nan)
 
     def range_for(self, band):
         """[low, high] in ms for ``band``, or None (no time constant)."""
@@ -255,13 +260,18 @@ class FocalPlaneErrorConfig:
 @dataclass
 class JumpConfig:
     rate_per_hour: float = 0.0      # readout jumps per detector per hour
-    fraction: float = 0.0           # of each wafer-band's detectors (dead ones included) with one
-    #                                 more jump each, at a random time
+    fraction: float = 0.0           # of each wafer-band's detectors (dead ones included) with
+    #                                 ``count`` more jumps each, at random times
+    count: Any = 1                  # jumps each of those detectors gets: a value or [low, high]
+    #                                 (uniform integers)
     height: Any = (5.0, 50.0)       # size: a value or [low, high] log-uniform; random sign
     units: str = "white"            # white: the detector's white-noise rms per sample; mjy
 
     def __post_init__(self):
         self.height = _check_range("jumps.height", self.height)
+        self.count = [int(v) for v in _check_range("jumps.count", self.count)]
+        if self.count[0] < 1:
+            raise ValueError("jumps.count must be >= 1")
         _check_choice("jumps.units", self.units, ("white", "mjy"))
         _check_fraction("jumps.fraction", self.fraction)
         if self.rate_per_hour < 0:

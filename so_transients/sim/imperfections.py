@@ -10,7 +10,8 @@ observation, as for a real array:
 * noise: each detector's white-noise level scatters (log-normal) and it can have its own 1/f
   noise with its own knee, on top of the common atmosphere;
 * calibration: the detector's response to the sky differs from what the metadata say;
-* time constant: the detector sees the sky through a one-pole low-pass 1/(1 + 2 pi i f tau);
+* time constant: the detector sees the sky through a one-pole low-pass 1/(1 + 2 pi i f tau),
+  and det_cal's ``tau_eff`` states it with an error (and as NaN for some detectors);
 * focal plane: the metadata xi, eta differ from the true ones (the TOD uses the true ones).
 
 Per-observation readout jumps live in :mod:`so_transients.sim.jumps`. All draws come from
@@ -40,6 +41,8 @@ class DetectorFlaws:
     fknee: np.ndarray           # Hz, knee of the detector's own 1/f noise; 0: none
     gain: np.ndarray            # true sky response over the metadata's (1: perfect calibration)
     tau: np.ndarray             # s, time constant; 0: instantaneous
+    tau_meta: np.ndarray        # s, the time constant det_cal states (tau_eff): tau with its
+    #                             measurement error, NaN where unmeasured
     dxi: np.ndarray             # rad, metadata xi minus true xi
     deta: np.ndarray            # rad, metadata eta minus true eta
 
@@ -98,20 +101,26 @@ def _group_flaws(config, band, n, rng_of) -> DetectorFlaws:
              else _log_uniform(rng_of("fknee"), config.noise.fknee, n))
     tau_range = config.time_constants.range_for(band)
     tau = np.zeros(n) if tau_range is None else 1e-3 * _log_uniform(rng_of("tau"), tau_range, n)
+    tau_meta = tau.copy()
+    cal = config.time_constants
+    if cal.metadata_error > 0:
+        tau_meta *= 1 + cal.metadata_error * rng_of("tau_error").standard_normal(n)
+    if cal.metadata_nan > 0:
+        tau_meta[rng_of("tau_nan").random(n) < cal.metadata_nan] = np.nan
     sigma = config.focal_plane_errors.sigma_arcsec * ARCSEC
     if sigma > 0:
         dxi, deta = rng_of("focal_plane").standard_normal((2, n)) * sigma
     else:
         dxi, deta = np.zeros(n), np.zeros(n)
     return DetectorFlaws(status, factor, fknee, _gains(config.calibration, n, rng_of("gain")),
-                         tau, dxi, deta)
+                         tau, tau_meta, dxi, deta)
 
 
 def draw_flaws(config, tube, dets, rng_for) -> DetectorFlaws:
     """Flaws of every detector of ``dets`` (one tube), drawn wafer-band by wafer-band;
     ``rng_for(*keys)`` gives the seeded generator of the flaws' stream ``keys``."""
     n = len(dets["readout_id"])
-    out = DetectorFlaws(np.full(n, OK, dtype="U5"), *np.zeros((6, n)))
+    out = DetectorFlaws(np.full(n, OK, dtype="U5"), *np.zeros((7, n)))
     for wafer, band in sorted(set(zip(dets["wafer_slot"], dets["bandpass"]))):
         sel = np.flatnonzero((dets["wafer_slot"] == wafer) & (dets["bandpass"] == band))
         group = _group_flaws(config, band, len(sel),
@@ -132,13 +141,14 @@ def flaws_table(dets, flaws: DetectorFlaws) -> Table:
                    "tube_slot": dets["tube_slot"], "wafer_slot": dets["wafer_slot"],
                    "bandpass": dets["bandpass"], "status": flaws.status,
                    "noise_factor": flaws.noise_factor, "fknee": flaws.fknee * u.Hz,
-                   "gain": flaws.gain, "tau": flaws.tau * u.s,
+                   "gain": flaws.gain, "tau": flaws.tau * u.s, "tau_eff": flaws.tau_meta * u.s,
                    "xi_true": dets["xi"] * u.rad, "eta_true": dets["eta"] * u.rad,
                    "dxi": flaws.dxi / ARCSEC * u.arcsec, "deta": flaws.deta / ARCSEC * u.arcsec})
     table.meta["comments"] = [
         "status: ok, dead, noisy or lost (NaN throughout); noise_factor: white and 1/f noise "
         "over the band's level",
-        "gain: true sky response over the metadata's; tau: one-pole detector time constant",
+        "gain: true sky response over the metadata's; tau: one-pole detector time constant; "
+        "tau_eff: the one det_cal states",
         "dxi, deta: metadata focal-plane position minus the true one (xi_true, eta_true)"]
     return table
 

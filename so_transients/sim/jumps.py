@@ -4,7 +4,8 @@ Jumps come from the readout (flux-ramp unlocks, 2 pi slips), so they are added a
 detector's response to the sky and are not filtered by its time constant. Each detector of an
 observation has a Poisson number of them (``jumps.rate_per_hour``), at uniformly random samples,
 with a log-uniform size of random sign, in mJy or in units of the detector's own white noise;
-``jumps.fraction`` of the detectors, drawn at random, have one more. Dead detectors jump like
+``jumps.fraction`` of the detectors, drawn at random, have ``jumps.count`` more (a uniform
+integer in its range). Dead detectors jump like
 the others: a jump is the readout's, not the detector's.
 """
 from __future__ import annotations
@@ -28,7 +29,8 @@ def draw_jumps(config, obs_id, readout_ids, timestamps, white_rms, rng) -> Table
         if config.fraction > 0:
             more = rng.choice(len(readout_ids), int(round(config.fraction * len(readout_ids))),
                               replace=False)
-            counts[more] += 1
+            low, high = config.count
+            counts[more] += rng.integers(low, high + 1, len(more)) if high > low else low
         for name, count, rms in zip(readout_ids, counts, white_rms):
             samples = np.sort(rng.integers(1, len(timestamps), count))
             size = np.exp(rng.uniform(*np.log(config.height), count))

@@ -305,7 +305,7 @@ def _simulate_obs(config, writer, sky, tl: Timeline, tube, obs_id, block, dets,
     truth tables to ``truth``."""
     # det_cal as SO's real data always has it (tau_eff 0 for instantaneous detectors), so
     # that a site config deconvolving time constants runs on every simulated dataset
-    writer.add_detector_metadata(obs_id, tube, metadata_positions(dets, flaws), tau=flaws.tau)
+    writer.add_detector_metadata(obs_id, tube, metadata_positions(dets, flaws), tau=flaws.tau_meta)
     pattern = config.scan
     writer.add_observation(obs_id, {
         "timestamp": tl.timestamps[0], "duration": tl.timestamps[-1] - tl.timestamps[0],

@@ -29,7 +29,11 @@ real detector in every fit; a dead channel that still carries its readout's jump
 of the common modes upstream filters subtracted records a few per cent of a live detector's
 noise, and each would weigh as much as hundreds of live detectors (an optical detector's
 noise scatters by some 25 % between detectors, so 0.3 of the median is 5 sigma below it); and
-a detector ten times noisier than the rest adds mostly noise to the clustering. They are left
+a detector ten times noisier than the rest adds mostly noise to the clustering. The same range
+holds for the noise that weighs, the spread of the filtered amplitude (``sigma_amp``): a dead
+channel that records only its readout's jumps and cosmic rays has a white-band level a third
+of a live detector's but an amplitude spread a thousand times smaller, and three such channels
+would carry 99 % of a wafer's weight (:func:`noise_outliers`). They are left
 out of the median PSD the kernels are computed from. ``excluded`` says why each is left out
 (:data:`EXCLUDED`) and ``masked_fraction`` how much of each detector's time is not searched.
 
@@ -497,27 +501,44 @@ def _filter_chunk(sp, signal, mask, sigma_t, sl, out_snr):
 
 #: Why a detector is not used, as ``FilterResult.excluded`` (and the archive) codes it
 EXCLUDED = {0: "used", 1: "no finite, non-constant data", 2: "noise below min_noise_ratio",
-            3: "noise above max_noise_ratio"}
-NO_DATA, QUIET, NOISY = 1, 2, 3
+            3: "noise above max_noise_ratio",
+            4: "amplitude noise outside min/max_noise_ratio (its noise is not Gaussian)"}
+NO_DATA, QUIET, NOISY, INCONSISTENT = 1, 2, 3, 4
 #: The same codes as column names
-EXCLUDED_NAMES = {NO_DATA: "no_data", QUIET: "too_quiet", NOISY: "too_noisy"}
+EXCLUDED_NAMES = {NO_DATA: "no_data", QUIET: "too_quiet", NOISY: "too_noisy",
+                  INCONSISTENT: "non_gaussian"}
 
 
-def noise_outliers(noise_level, dead, groups, cfg: FilterConfig):
-    """Live detectors whose white noise is below ``cfg.min_noise_ratio`` (:data:`QUIET`) or
-    above ``cfg.max_noise_ratio`` (:data:`NOISY`) times the median of the live detectors of
-    their group; 0 for the others."""
+def _ratio_to_median(level, live_groups):
+    """``level`` over the median of its group's live rows (``live_groups``: {group: rows});
+    rows of numerical noise (zeros filtered upstream) do not set the median."""
+    ratio = np.full(len(level), np.nan)
+    for live in live_groups.values():
+        values = level[live]
+        reference = np.median(values[values > 1e-6 * np.percentile(values, 75)])
+        ratio[live] = values / reference
+    return ratio
+
+
+def noise_outliers(noise_level, sigma_amp, dead, groups, cfg: FilterConfig):
+    """Live detectors whose noise is out of their group's range, judged on both noise
+    measures against the median of the group's live detectors: the white-band level below
+    ``cfg.min_noise_ratio`` (:data:`QUIET`) or above ``cfg.max_noise_ratio`` (:data:`NOISY`)
+    times it; then the spread of the filtered amplitude, ``sigma_amp``, which sets each
+    detector's weight in every fit and map, outside the same range (:data:`INCONSISTENT`).
+    A dead channel that records only its readout's jumps and cosmic rays has a white level
+    a third of a live detector's but an amplitude spread a thousand times smaller, and
+    would otherwise carry nearly all of the wafer's weight. 0 for the others."""
     out = np.zeros(len(noise_level), np.int8)
-    for g in np.unique(groups):
-        live = np.flatnonzero((groups == g) & ~dead)
-        if not len(live):
-            continue
-        level = noise_level[live]
-        # rows of numerical noise (zeros filtered upstream) must not set the reference
-        reference = np.median(level[level > 1e-6 * np.percentile(level, 75)])
-        ratio = level / reference
-        out[live] = np.where(ratio < cfg.min_noise_ratio, QUIET,
-                             np.where(ratio > cfg.max_noise_ratio, NOISY, 0))
+    live_groups = {g: np.flatnonzero((groups == g) & ~dead) for g in np.unique(groups)}
+    live_groups = {g: rows for g, rows in live_groups.items() if len(rows)}
+    outside = lambda ratio: (ratio < cfg.min_noise_ratio) | (ratio > cfg.max_noise_ratio)
+    white = _ratio_to_median(noise_level, live_groups)
+    amp = _ratio_to_median(sigma_amp, live_groups)
+    live = np.isfinite(white)
+    out[live] = np.where(white[live] < cfg.min_noise_ratio, QUIET,
+                         np.where(white[live] > cfg.max_noise_ratio, NOISY,
+                                  np.where(outside(amp[live]), INCONSISTENT, 0)))
     return out
 
 
@@ -567,7 +588,7 @@ def matched_filter(signal, sample_rate, sigma_t, cfg: FilterConfig = FilterConfi
                           n_jumps=gather("n_jumps").astype(int))
     groups = np.zeros(ndet, int) if groups is None else np.asarray(groups)
     first_dead = result.dead.copy()
-    reason = noise_outliers(result.noise_level, first_dead, groups, cfg)
+    reason = noise_outliers(result.noise_level, result.sigma_amp, first_dead, groups, cfg)
     outliers = reason > 0
     _exclude(result, np.flatnonzero(outliers))
     result.excluded = np.where(first_dead, NO_DATA, reason).astype(np.int8)

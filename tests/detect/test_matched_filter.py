@@ -131,6 +131,33 @@ def test_dead_detectors_are_marked_not_fatal():
     assert np.all(res.snr[2] == 0) and not res.valid[2].any()
 
 
+def test_a_dead_channel_of_spikes_gets_no_weight():
+    """A dead channel reading (nearly) zero but for its readout's cosmic rays and a jump has a
+    white level a third of a live detector's, and an amplitude spread a thousand times
+    smaller: it is left out, so no channel carries a weight its selection did not vouch
+    for, and the wafer's effective number of detectors stays that of the live ones."""
+    rng = np.random.default_rng(6)
+    nsamp, ndet = 120 * 220, 40
+    tod = red_noise(rng, ndet, nsamp)
+    dead = [5, 17, 30]
+    for row in dead:
+        tod[row] = WHITE / 1000 * rng.standard_normal(nsamp)
+        spikes = rng.choice(nsamp, 30, replace=False)
+        # 30 of these spikes give three quarters of the live white level
+        tod[row, spikes] = WHITE / 3 * np.sqrt(5 * nsamp / 30) * rng.choice([-1, 1], 30)
+        tod[row, rng.integers(nsamp // 2, nsamp):] += 3000.0     # a jump
+    for bright_bias in (None, 0.02):
+        res = matched_filter(tod, FS, SIGMA_T, FilterConfig(highpass=1.23,
+                                                            bright_bias=bright_bias))
+        assert list(np.flatnonzero(res.dead)) == dead
+        weight = np.where(res.dead, 0.0, res.sigma_amp ** -2.0)
+        assert weight.sum() ** 2 / np.sum(weight ** 2) > 0.9 * (ndet - len(dead))
+        if bright_bias is None:       # the white level alone would keep them
+            ratio = res.noise_level[dead] / np.median(np.delete(res.noise_level, dead))
+            assert np.all((ratio > 0.3) & (ratio < 1.0)), ratio
+            assert set(res.excluded[dead]) == {4}
+
+
 def test_response_kernel_and_error_inflation():
     nfft = 2**15
     psd = np.ones(nfft // 2 + 1)

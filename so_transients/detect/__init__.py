@@ -1,7 +1,8 @@
 """The paper's detection method (Clancy et al. 2025), as plain functions on arrays.
 
 - :mod:`.matched_filter` and its compiled loops :mod:`.spectral_ops`: the per-detector
-  matched filter (``transient_filter``)
+  matched filter (``transient_filter``); :mod:`.health`: how a group's detectors share the
+  weight (effective number of detectors)
 - :mod:`.find` and :mod:`.dbscan`: high-S/N samples clustered per scan (``transient_find``,
   paper mode)
 - :mod:`.cuts`: is a candidate source-like (``transient_cuts``)

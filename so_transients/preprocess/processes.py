@@ -39,6 +39,7 @@ from so_transients.detect.fit import SPEED_TOLERANCE, FitConfig, FitInputs
 from so_transients.detect.fit_candidates import fit_group_candidates
 from so_transients.detect import spectral_ops
 from so_transients.detect.common_mode import ExcursionConfig, mask_excursions
+from so_transients.detect.health import health_warnings, weight_health
 from so_transients.detect.jumps import JumpConfig, remove_common_jumps
 from so_transients.significance.far import SignificanceConfig
 from so_transients.significance.joint_far import significance_with_joint
@@ -130,6 +131,18 @@ def _check_live(excluded, where, cfg):
     level = logging.WARNING if n_dead > cfg.max_excluded * n else logging.INFO
     log.log(level, "%s: %d of %d detectors not used%s", where, n_dead, n,
             f" ({why})" if why else "")
+
+
+def _check_weights(sigma_amp, excluded, where):
+    """Log the effective number of detectors the group's weights leave (as a warning,
+    saying what is out of range, when :func:`so_transients.detect.health.health_warnings`
+    finds anything)."""
+    health = weight_health(sigma_amp, np.asarray(excluded) == 0)
+    problems = health_warnings(health)
+    level = logging.WARNING if problems else logging.INFO
+    log.log(level, "%s: effective number of detectors %.1f of %d used, largest weight share "
+            "%.3g%s", where, health["n_eff"], health["n_used"], health["max_weight_share"],
+            f" -- {'; '.join(problems)}: fluxes and positions may be wrong" if problems else "")
 
 
 # ----------------------------------------------------------------------------- the steps
@@ -326,6 +339,7 @@ class TransientFilter(_Preprocess):
         res = matched_filter(aman.signal, fs, sigma_t, self.cfg, mask=self._mask(aman),
                              groups=bands)
         _check_live(res.excluded, where, self.cfg)
+        _check_weights(res.sigma_amp, res.excluded, where)
         _replace(aman, "transient_snr", res.snr, [(0, "dets"), (1, "samps")])
         _replace(aman, "transient_filter", self._summary(aman, res, fs, sigma_t, beam_sigma, bands))
         return aman, proc_aman

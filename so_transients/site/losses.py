@@ -16,6 +16,7 @@ import numpy as np
 from astropy.table import Table
 from sotodlib import core
 
+from so_transients.detect.health import health_warnings, weight_health
 from so_transients.detect.matched_filter import EXCLUDED, EXCLUDED_NAMES
 from so_transients.site.results import archive_entries
 from so_transients.site.pipeline import archive_index
@@ -61,6 +62,12 @@ def proc_losses(proc) -> dict:
         out["used"] = int(used.sum())
         out["jumps_removed"] = int(np.sum(np.asarray(f.n_jumps)[used])) \
             if "n_jumps" in f._fields else 0
+        if "transient_jumps" in steps and "n_jumps" in proc["transient_jumps"]._fields:
+            out["jumps_removed"] += int(np.sum(np.asarray(proc["transient_jumps"].n_jumps)[used]))
+        health = weight_health(np.asarray(f.sigma_amp), used)
+        out.update(n_eff=health["n_eff"], eff_fraction=health["eff_fraction"],
+                   max_weight_share=health["max_weight_share"],
+                   health="; ".join(health_warnings(health)))
         masked = (np.asarray(f.masked_fraction) if "masked_fraction" in f._fields
                   else np.zeros(ndet))
         out["masked_sample_fraction"] = float(np.mean(masked[used])) if used.any() else 1.0
@@ -80,6 +87,9 @@ def group_losses(archive_or_config, max_lost=0.3) -> Table:
         proc = core.AxisManager.load(filename, dataset)
         row = {"obs_id": obs_id, "group": "/".join(str(v) for v in tags.values()),
                **proc_losses(proc)}
+        if row.get("health"):
+            log.warning("%s %s: %s: fluxes and positions may be wrong", obs_id, row["group"],
+                        row["health"])
         if row["lost_fraction"] > max_lost:
             log.warning("%s %s: %d of %d detectors not used (%.0f %%): %s", obs_id, row["group"],
                         row["n_dets"] - row["used"], row["n_dets"], 100 * row["lost_fraction"],
@@ -91,7 +101,11 @@ def group_losses(archive_or_config, max_lost=0.3) -> Table:
         "removed_upstream: detectors the standard steps removed before transient_filter",
         "excluded_*: detectors transient_filter did not use, by reason (EXCLUDED)",
         "masked_sample_fraction: mean over used detectors of the samples not searched",
-        "jumps_removed: readout jumps transient_filter removed from the used detectors",
+        "jumps_removed: readout jumps transient_jumps and transient_filter removed from the "
+        "used detectors",
+        "n_eff: effective number of detectors, (sum w)^2 / sum w^2 with w = 1 / sigma_amp^2; "
+        "eff_fraction: n_eff / used; max_weight_share: the heaviest detector's share",
+        "health: what is out of range (so_transients.detect.health), '' when healthy",
         "lost_fraction: detectors not used, of the group's"]
     return table
 
@@ -113,5 +127,7 @@ def report(table: Table) -> str:
         lines.append(f"  {row['obs_id']} {row['group']}: {row['used']} of {row['n_dets']} "
                      f"detectors used ({describe(row)}); "
                      f"{100 * row['masked_sample_fraction']:.2g} % of their samples masked, "
-                     f"{row.get('jumps_removed', 0)} readout jumps removed")
+                     f"{row.get('jumps_removed', 0)} readout jumps removed; effective "
+                     f"number of detectors {row.get('n_eff', np.nan):.0f}"
+                     + (f" -- {row['health']}" if row.get("health") else ""))
     return "\n".join(lines)

@@ -135,6 +135,13 @@ SCHEMA = (
     Column("pass_peak_ratio", "bool", None, _T, "snr_max <= max_peak_ratio x snr_fit (a "
                                                  "glitch residue's one detector is far brighter "
                                                  "than the fitted source could make it)"),
+    Column("split_sigma", "float", None, _T, "the beam fits of two halves of the detectors "
+                                             "(dealt alternately across the scan) differ by "
+                                             "this many errors in position or flux, floors "
+                                             "included (NaN: not significant or not measured)"),
+    Column("pass_split", "bool", None, _T, "split_sigma <= max_split_sigma: the data support "
+                                           "the fitted position and flux (a fit pulled by a "
+                                           "few detectors does not pass)", missing=True),
     Column("duplicate_of", "int", None, _T, "cand_id of the detection of the same crossing "
                                             "(scan and band, fitted within a beam FWHM) with "
                                             "the higher S/N that this significant fit "
@@ -146,7 +153,7 @@ SCHEMA = (
            missing=True),
     Column("detected", "bool", None, _T, "fit_ok, snr_fit (or, for the member of a joint "
                                           "pair with the higher snr_fit, snr_joint) >= min_snr, "
-                                          "pass_peak_ratio, "
+                                          "pass_peak_ratio, pass_split, "
                                           "pass_far, pass_score, not moving and not a "
                                           "duplicate"),
 )

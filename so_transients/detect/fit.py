@@ -35,7 +35,7 @@ from scipy.interpolate import CubicHermiteSpline
 
 from so_transients.common import pointing
 from so_transients.detect import spectral_ops
-from so_transients.common.angles import DEG
+from so_transients.common.angles import ARCSEC, DEG
 from so_transients.detect.find import SCAN_FIELD
 from so_transients.common.robust import mad_std
 from so_transients.common.scan_geometry import constant_velocity, samples_in
@@ -62,6 +62,11 @@ class FitConfig:
     min_motion_arcmin_per_min: float = 0.1   # a linked set moving faster is a moving source
     motion_floor_arcsec: float = 10.0        # position error floor for the motion test
     max_peak_ratio: float | None = None      # not detected: snr_max > this x snr_fit (None: off)
+    max_split_sigma: float | None = 5.0      # not detected: the fits of two halves of the
+    #                                          detectors disagree by more than this many errors
+    #                                          (split_sigma; None: not checked)
+    split_floor_arcsec: float = 10.0         # position error floor of that comparison ...
+    split_floor_flux: float = 0.1            # ... and flux error floor, of the flux
     score_model: str | None = None           # real-or-artefact model: a file, or "shipped"
     min_real_score: float | None = None      # not detected: real_score below this (None: off)
 
@@ -72,7 +77,9 @@ class FitConfig:
                  max_motion_arcmin_per_min=self.max_motion_arcmin_per_min,
                  min_motion_arcmin_per_min=self.min_motion_arcmin_per_min,
                  motion_floor_arcsec=self.motion_floor_arcsec,
-                 max_peak_ratio=self.max_peak_ratio)
+                 max_peak_ratio=self.max_peak_ratio, max_split_sigma=self.max_split_sigma,
+                 split_floor_arcsec=self.split_floor_arcsec,
+                 split_floor_flux=self.split_floor_flux)
         non_negative("transient_fit", seed=self.seed)
         share("transient_fit", min_real_score=self.min_real_score)
         if self.min_real_score is not None and self.score_model is None:
@@ -404,6 +411,34 @@ def null_scatter(windows, inflation=1.0):
     return float(mad_std(ratios))
 
 
+def split_sigma(track: Track, det_xi, det_eta, amp, sigma_amp, inflation=1.0, error_scale=1.0,
+                floor=10 * ARCSEC, floor_flux=0.1):
+    """How far apart the fits of two halves of the detectors are, in errors: the window's
+    detectors sorted across the scan are dealt alternately into two halves (each spans the
+    source's whole cross-scan profile), each half is fitted (:func:`fit_candidate`), and
+    the larger of the position difference over its combined error (with ``floor``, rad, in
+    quadrature) and the flux difference over its combined error (with ``floor_flux`` of
+    the mean flux) is returned; NaN when a half cannot be fitted.
+
+    A source the data support gives two halves that agree; a fit pulled by a few detectors
+    whose data or weights are wrong (a dead channel weighted as a live one, a detector whose
+    pointing is off) gives halves that do not."""
+    mid = len(track.xi) // 2
+    across = _offsets(track, det_xi, det_eta)[1][:, mid]
+    order = np.argsort(across, kind="stable")
+    fits = [fit_candidate(track, det_xi[h], det_eta[h], amp[h], sigma_amp[h], inflation,
+                          error_scale) for h in (order[0::2], order[1::2])]
+    if not all(f["fit_ok"] for f in fits):
+        return np.nan
+    a, b = fits
+    position = np.hypot(a["dxi"] - b["dxi"], a["deta"] - b["deta"]) / np.sqrt(
+        a["dxi_err"] ** 2 + b["dxi_err"] ** 2 + a["deta_err"] ** 2 + b["deta_err"] ** 2
+        + floor ** 2)
+    flux = abs(a["flux"] - b["flux"]) / np.sqrt(
+        a["flux_err"] ** 2 + b["flux_err"] ** 2 + (floor_flux * 0.5 * (a["flux"] + b["flux"])) ** 2)
+    return float(max(position, flux))
+
+
 # ----------------------------------------------------------------------------- a group's fits
 
 def source_track(data: FitInputs, ra, dec, lo, hi, dets):
@@ -463,9 +498,12 @@ def fit_at(data: FitInputs, ra, dec, t_center, band_dets, error_scale, cfg: FitC
         return dict(n_fit_samples=0, n_fit_dets=0, fit_ok=False, error_scale=error_scale)
     live = band_dets[~data.dead[band_dets]]
     q, track, dets = fit_window(data, ra, dec, lo, hi, live, cfg)
-    res = fit_candidate(*window_arrays(data, track, dets, lo, hi), data.kernel(live)[1],
-                        error_scale)
+    arrays = window_arrays(data, track, dets, lo, hi)
+    res = fit_candidate(*arrays, data.kernel(live)[1], error_scale)
     res["error_scale"] = error_scale
+    if res["fit_ok"] and cfg.max_split_sigma is not None and res["snr_fit"] >= cfg.min_snr:
+        res["split_sigma"] = split_sigma(*arrays, data.kernel(live)[1], error_scale,
+                                         cfg.split_floor_arcsec * ARCSEC, cfg.split_floor_flux)
     if res["fit_ok"]:
         mid = (hi - lo) // 2
         res.update(to_sky(q[mid:mid + 1], track.xi[mid], track.eta[mid], res))

@@ -2,7 +2,8 @@
 (:func:`so_transients.detect.fit.fit_at`), or for a sweep stack the fixed-position fit of its
 crossings (:func:`so_transients.detect.forced_fit.stack_fit`), then the detection decision
 (:func:`detection_decision`): ``A0/sigma_A >= min_snr``, not moving, a brightest detector in
-proportion, ``pass_far``, ``pass_score``, and not a repeat of a detection of the same crossing
+proportion, two halves of the detectors that agree (``pass_split``), ``pass_far``,
+``pass_score``, and not a repeat of a detection of the same crossing
 (:func:`crossing_duplicates`).
 """
 from __future__ import annotations
@@ -18,7 +19,8 @@ from so_transients.detect.motion import flag_moving
 
 
 OUTPUT_FIELDS = ("flux", "flux_err", "ra", "dec", "ra_err", "dec_err", "offset", "offset_err",
-                 "snr_fit", "chi2_red", "n_fit_samples", "n_fit_dets", "fit_ok", "error_scale")
+                 "snr_fit", "chi2_red", "n_fit_samples", "n_fit_dets", "fit_ok", "error_scale",
+                 "split_sigma")
 
 
 def fit_group_candidates(data: FitInputs, cands, det_bands, cfg: FitConfig, score=None):
@@ -68,13 +70,16 @@ def detection_decision(cands, fits, cfg: FitConfig, fwhm_by_band):
     significant = fits["fit_ok"] & (np.nan_to_num(fits["snr_fit"]) >= cfg.min_snr)
     significant |= fits["fit_ok"] & jointly_significant(cands, fits, cfg.min_snr)
     out = {"pass_peak_ratio": peak_ratio_ok(cands["snr_max"], fits["snr_fit"],
-                                            cfg.max_peak_ratio)}
+                                            cfg.max_peak_ratio),
+           "pass_split": split_ok(fits.get("split_sigma", np.full(n, np.nan)),
+                                  cfg.max_split_sigma)}
     allowed = np.asarray(cands.get("pass_far", np.ones(n, bool)), bool) \
         & np.asarray(fits.get("pass_score", np.ones(n, bool)), bool)
     single = np.asarray(cands.get("n_crossings", np.ones(n, int))) == 1
     sel = np.flatnonzero(significant & single & (np.asarray(cands["scan"]) >= 0))
+    trusted = out["pass_peak_ratio"] & out["pass_split"]
     preference = np.lexsort((-np.nan_to_num(fits["snr_fit"][sel], nan=-np.inf),
-                             ~(out["pass_peak_ratio"] & allowed)[sel]))
+                             ~(trusted & allowed)[sel]))
     repeats = crossing_duplicates(cands["scan"][sel], cands["bandpass"][sel], fits["ra"][sel],
                                   fits["dec"][sel], preference,
                                   np.array([fwhm_by_band[b] for b in cands["bandpass"][sel]]))
@@ -86,7 +91,7 @@ def detection_decision(cands, fits, cfg: FitConfig, fwhm_by_band):
     cand_id = np.asarray(cands.get("cand_id", np.arange(n)))
     out.update(moving=moving, motion_rate=rate,
                duplicate_of=np.where(duplicate, cand_id[kept], -1),
-               detected=significant & ~moving & out["pass_peak_ratio"] & allowed & ~duplicate)
+               detected=significant & ~moving & trusted & allowed & ~duplicate)
     return out
 
 
@@ -176,6 +181,16 @@ def _fit_one(data: FitInputs, cands, c, det_bands, scales, cfg: FitConfig):
         return stack_fit(*args, cands["t_start"][c], cands["t_stop"][c], dets, scales[band],
                          cfg)
     return fit_at(*args, cands["t_median"][c], dets, scales[band], cfg)
+
+
+def split_ok(split, max_split_sigma):
+    """Whether the fits of two halves of each candidate's detectors agree within
+    ``max_split_sigma`` errors (:func:`so_transients.detect.fit.split_sigma`; True where it
+    was not measured, or without a limit)."""
+    split = np.asarray(split, float)
+    if max_split_sigma is None:
+        return np.ones(len(split), bool)
+    return ~(split > max_split_sigma)
 
 
 def peak_ratio_ok(snr_max, snr_fit, max_ratio):

@@ -745,7 +745,10 @@ class TransientFit(_Preprocess):
     ``min_motion_arcmin_per_min``: flagged ``moving``, see :mod:`so_transients.detect.motion`)
     nor a repeat of a detection of the same crossing (fits of one scan and band within a beam
     FWHM: ``duplicate_of`` names the one kept, see
-    :func:`so_transients.detect.fit_candidates.crossing_duplicates`). Errors are scaled by
+    :func:`so_transients.detect.fit_candidates.crossing_duplicates`), and the fits of two
+    halves of its detectors agree within ``max_split_sigma`` errors (``split_sigma``,
+    ``pass_split``: a fit pulled off the source by a few detectors whose data or weights
+    are wrong does not, see :func:`so_transients.detect.fit.split_sigma`). Errors are scaled by
     ``error_scale``, the measured spread of the same fit at ``n_null`` random positions away
     from candidates (residual atmosphere is correlated between neighbouring detectors, so the
     naive covariance is too small), unless a fixed ``error_scale`` is configured (injection
@@ -786,6 +789,9 @@ class TransientFit(_Preprocess):
           min_motion_arcmin_per_min: 0.1  # linked ones moving faster: a moving source
           motion_floor_arcsec: 10.0       # position error floor of the motion test
           max_peak_ratio: null            # 3: not detected when snr_max > 3 x snr_fit
+          max_split_sigma: 5.0            # not detected when two halves' fits disagree more
+          split_floor_arcsec: 10.0        # their position error floor
+          split_floor_flux: 0.1           # their flux error floor (of the flux)
           score_model: null               # real-or-artefact model: a file, or shipped
           min_real_score: null            # not detected when real_score is below this
         save: true

@@ -7,9 +7,12 @@ position (the detections within 5 position errors of one of them, then those wit
 of their mean position) and a straight track
 through two detections more than 5 errors apart that could be joined at ``max_rate`` (the
 detections within 5 errors of it, then those within 3 errors of the line fitted to them).
-A track counts only with at least three members and a
+A track counts only with motion its members' positions support
+(:func:`motion_supported`: a flare's repeated crossings at one place and another flare
+further away lie on a line, but two static positions explain them as well) and a
 fitted rate (weighted least squares of the tangent-plane offsets against time) above
-``min_rate`` and ``min_significance`` errors. The hypothesis explaining most detections is
+``min_rate`` and ``min_significance`` errors: the motion must be seen along the track, not
+made by linking a static source with another one further away. The hypothesis explaining most detections is
 taken first (a static one on ties), its members set aside, and so on: a steady source next
 to a moving one stays static, and two detections alone are never flagged as moving, so one
 noise detection near a flare cannot hide it.
@@ -87,6 +90,47 @@ def _static_members(i, xy, pos_err, pool, n_iter=3):
     return members
 
 
+def _static_groups(xy, pos_err):
+    """Detections at ``xy`` (errors ``pos_err``) grouped by position: taken in order of
+    precision, each detection not within 5 combined errors of an earlier group's first
+    member starts a new group (no chaining). Returns each detection's group."""
+    first, group = [], np.zeros(len(xy), int)
+    for i in np.argsort(pos_err, kind="stable"):
+        near = [k for k, c in enumerate(first)
+                if np.hypot(*(xy[i] - xy[c])) <= 5 * np.hypot(pos_err[i], pos_err[c])]
+        if near:
+            group[i] = near[0]
+        else:
+            group[i] = len(first)
+            first.append(i)
+    return group
+
+
+def _chi2_about(xy, pos_err, model):
+    return float(np.sum(np.sum((xy - model) ** 2, axis=1) / pos_err**2))
+
+
+def motion_supported(t, xy, pos_err):
+    """Whether detections at times ``t`` and tangent-plane positions ``xy`` (errors
+    ``pos_err``) show motion: they occupy three or more distinct positions, or their two
+    positions are fitted better by a straight track than by two static sources (a flare
+    crossed twice at one place and another one further away are not)."""
+    group = _static_groups(xy, pos_err)
+    if group.max() >= 2:
+        return True
+    w = pos_err ** -2.0
+    static = np.zeros_like(xy)
+    for g in np.unique(group):
+        sel = group == g
+        static[sel] = np.sum(w[sel, None] * xy[sel], axis=0) / np.sum(w[sel])
+    t0 = np.sum(w * t) / np.sum(w)
+    dt = t - t0
+    stt = np.sum(w * dt**2)
+    x0 = np.sum(w[:, None] * xy, axis=0) / np.sum(w)
+    v = np.sum((w * dt)[:, None] * xy, axis=0) / stt if stt > 0 else np.zeros(2)
+    return _chi2_about(xy, pos_err, x0 + v * dt[:, None]) < _chi2_about(xy, pos_err, static)
+
+
 def _local_rate(t, ra, dec, pos_err):
     """:func:`motion_of` in the tangent plane at the detections' own mean direction (a plane
     around a detection degrees away would distort their offsets by the change of cos(dec))."""
@@ -111,7 +155,8 @@ def _best_explanation(t, ra, dec, xy, pos_err, pool, max_rate, min_rate, min_sig
             members = _track_members(i, j, t, xy, pos_err, pool)
             if len(members) >= 3:
                 members = _refined_members(members, t, xy, pos_err, pool)
-            if len(members) < 3 or len(members) <= len(best):
+            if len(members) < 3 or len(members) <= len(best) \
+                    or not motion_supported(t[members], xy[members], pos_err[members]):
                 continue
             rate, rate_err = _local_rate(t[members], ra[members], dec[members], pos_err[members])
             if rate > min_rate and rate > min_significance * rate_err:

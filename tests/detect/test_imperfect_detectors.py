@@ -230,3 +230,21 @@ def test_a_static_detection_near_a_moving_track_stays_static():
                                 min_rate=0.1 * ARCMIN / 60)
     assert list(moving) == [True, True, True, True, False]
     assert rates[0] / (ARCMIN / 60) == pytest.approx(0.5, rel=1e-6)
+
+
+def test_two_static_flares_never_make_a_track():
+    """A flare crossed twice at one position and another flare 6' and ~400 s away line up at
+    ~1'/min, but no motion is seen along that "track": its members sit at two positions. All
+    three stay static (TOAST's ground scan made this; the flare was lost as moving)."""
+    dec0, ra0 = -0.5, 1.0
+    t = np.array([100.0, 130.0, 520.0])
+    ra = ra0 + np.array([0.0, 2.0 * ARCSEC, 6 * ARCMIN]) / np.cos(dec0)
+    dec = np.full(3, dec0)
+    err = np.full(3, np.hypot(3 * ARCSEC, 10 * ARCSEC))
+    moving, _ = flag_moving(t, ra, dec, err, max_rate=5 * ARCMIN / 60,
+                            min_rate=0.1 * ARCMIN / 60)
+    assert not moving.any()
+    # the same three times on a moving source's track (three positions) are a track
+    ra_moving = ra0 + 0.9 * ARCMIN / 60 * (t - t[0]) / np.cos(dec0)
+    assert flag_moving(t, ra_moving, dec, err, max_rate=5 * ARCMIN / 60,
+                       min_rate=0.1 * ARCMIN / 60)[0].all()

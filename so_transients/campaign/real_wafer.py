@@ -13,6 +13,7 @@ flare explains beside the cosmic rays, jumps and NaN stretches near them in the 
 """
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import numpy as np
@@ -70,8 +71,10 @@ def flare_list(seed, duration, n_bright=10, n_faint=5, t_rise=10.0):
 
 
 def simulate_seed(root, seed, duration, flares, config=CONFIG):
-    """``config`` (the real wafer by default) simulated for ``duration`` s with ``flares``."""
-    cfg = yaml.safe_load(Path(config).read_text())
+    """``config`` (a file, the real wafer by default, or a config dict) simulated for
+    ``duration`` s with ``flares``."""
+    cfg = (copy.deepcopy(config) if isinstance(config, dict)
+           else yaml.safe_load(Path(config).read_text()))
     cfg["observation"]["duration"] = duration
     cfg.update(seed=seed, output=str(root), flares={"list": flares})
     return simulate(SimConfig.from_dict(cfg), progress=False)
@@ -142,6 +145,20 @@ def score(sim, found):
                      "offset_arcmin": float(mine["offset"][best] / ARCMIN)
                      if best is not None else np.nan})
     return rows, int(np.sum(matched["source_id"] < 0))
+
+
+def mislocated(sim, found, min_snr=10.0, max_offset=0.5 * ARCMIN):
+    """Detections of ``found`` with ``snr_fit >= min_snr`` that lie more than ``max_offset``
+    (rad) from every injected flare crossing them (a confident detection in the wrong
+    place)."""
+    flares = Table.read(sim.context.parent / "truth" / "flares.ecsv")
+    bright = np.nan_to_num(np.asarray(found["snr_fit"], float)) >= min_snr
+    if not len(flares):
+        return int(bright.sum())
+    fwhm = {b: get_band(b).fwhm for b in set(flares["band"])}
+    matched = match(found, flares, group_crossings(sim.context, flares, fwhm),
+                    max_dt=MATCH_DT, max_offset=max_offset)
+    return int(np.sum(bright & (np.asarray(matched["source_id"]) < 0)))
 
 
 def summary(rows, unmatched, hours):

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -83,13 +84,19 @@ def main(argv=None):
                 print(row, flush=True)
             if not args.keep:
                 for path in sorted(base.glob(f"seed{seed}*")):
-                    os.system(f"rm -rf '{path}'")
+                    shutil.rmtree(path, ignore_errors=True)
+            out = write_table(table, args)      # after every realization: a partial run counts
+    print_markdown(out, args.noise_only)
+
+
+def write_table(table, args):
+    """The rows so far as an ECSV table at ``args.out``."""
     names = list(dict.fromkeys(k for r in table for k in r))
     out = Table(rows=[[r.get(k, np.nan) for k in names] for r in table], names=names)
-    out.meta["comments"] = [f"studies/drawn_wafers.py {' '.join(argv or [])}".strip(),
+    out.meta["comments"] = [f"studies/drawn_wafers.py, seeds {args.seeds}, modes {args.modes}",
                             f"{args.minutes:g} minutes of one f090 wafer-band per realization"]
     out.write(args.out, overwrite=True)
-    print_markdown(out, args.noise_only)
+    return out
 
 
 def print_markdown(out, noise_only):

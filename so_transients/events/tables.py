@@ -9,9 +9,7 @@ nearest catalogued source. Columns: :mod:`.schema`.
 """
 from __future__ import annotations
 
-import astropy.units as u
 import numpy as np
-from astropy.coordinates import SkyCoord
 from astropy.table import Table
 
 from so_transients.common.angles import ARCSEC
@@ -30,9 +28,17 @@ from so_transients.events import schema
 
 
 def event_name(ra_deg, dec_deg) -> str:
-    """``SOTR Jhhmmss.s+ddmmss.s`` of a position in degrees."""
-    coord = SkyCoord(ra_deg * u.deg, dec_deg * u.deg)
-    return "SOTR J" + coord.to_string("hmsdms", sep="", precision=1).replace(" ", "")
+    """``SOTR Jhhmmss.s+ddmmss.s`` of a position in degrees, truncated as the IAU's naming
+    convention asks (rounding would name RA 359.9998 deg ``J240000.0``)."""
+    tenths = int(np.floor((float(ra_deg) % 360.0) / 15.0 * 36000.0 + 1e-6)) % (24 * 36000)
+    h, rest = divmod(tenths, 36000)
+    m, s10 = divmod(rest, 600)
+    sign = "-" if dec_deg < 0 else "+"
+    arc = int(np.floor(abs(float(dec_deg)) * 36000.0 + 1e-6))
+    d, rest = divmod(arc, 36000)
+    am, as10 = divmod(rest, 600)
+    return (f"SOTR J{h:02d}{m:02d}{s10 // 10:02d}.{s10 % 10}"
+            f"{sign}{d:02d}{am:02d}{as10 // 10:02d}.{as10 % 10}")
 
 
 def _joined(values) -> str:

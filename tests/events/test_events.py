@@ -237,3 +237,13 @@ def test_events_check_matches_events_to_flares_and_counts_false_ones():
     assert by["none"]["false_events"] == 2 and by["none"]["per_wafer_hour"] == 1.0
     assert by["both_bands"]["false_events"] == 1 and by["both_bands"]["flares_found"] == 1
     assert by["joint_snr"]["false_events"] == 0 and by["joint_snr"]["efficiency"] == 1.0
+
+
+def test_event_names_truncate_as_the_iau_asks():
+    from so_transients.events.tables import event_name
+    assert event_name(359.9998, -0.00001) == "SOTR J235959.9-000000.0"     # not J240000.0
+    assert event_name(0.0, 0.0) == "SOTR J000000.0+000000.0"
+    # 18h30m22.56s, -48d11m00.39s: each figure truncated, not rounded
+    ra = (18 + 30 / 60 + 22.56 / 3600) * 15
+    dec = -(48 + 11 / 60 + 0.39 / 3600)
+    assert event_name(ra, dec) == "SOTR J183022.5-481100.3"

@@ -145,8 +145,14 @@ def collect_units(statuses) -> Table:
     return vstack(tables, metadata_conflicts="silent")
 
 
-def failures_table(statuses) -> Table:
-    failed = [s for s in statuses if s["error"]]
+def failures_table(statuses, site_failed=None) -> Table:
+    """The groups that failed: in the site pipeline (``site_failed``, an
+    :class:`~so_transients.site.results.ArchiveStatus`'s ``failed``: their detections are
+    missing) and in the forced photometry (``statuses``: their light-curve points are)."""
+    failed = [{"obs_id": obs, "group": "/".join(group),
+               "error": f"site pipeline: {kind}: {message}"}
+              for (obs, group), (kind, message) in sorted((site_failed or {}).items())]
+    failed += [s for s in statuses if s["error"]]
     return Table({"obs_id": [s["obs_id"] for s in failed] or np.zeros(0, str),
                   "group": [s["group"] for s in failed] or np.zeros(0, str),
                   "error": [s["error"] for s in failed] or np.zeros(0, str)})
@@ -166,7 +172,7 @@ def build_events(cfg: EventsConfig, progress=True, pool=None, as_completed=None)
     jobs = make_jobs(cfg, events, cands, out) if len(events) else []
     statuses = run_all(run_job, jobs, "forced photometry", progress, pool, as_completed,
                        unit="group")
-    failures = failures_table(statuses)
+    failures = failures_table(statuses, status.failed)
     for s in statuses:
         if s["error"]:
             log.warning("%s %s: %s", s["obs_id"], s["group"], s.get("traceback", s["error"]))
@@ -253,7 +259,7 @@ def main(config, out=None, nproc=None, partial=False, quiet=False):
             print(f"so-transients events: FAILED {row['obs_id']} {row['group']}: {row['error']}",
                   file=sys.stderr)
         print(f"so-transients events: {len(tables['failures'])} group(s) failed; their "
-              "crossings are missing from the light curves"
+              "detections or crossings are missing from the events and light curves"
               f"{' (--partial: exit 0)' if partial else ''}", file=sys.stderr)
         return 0 if partial else 1
     return 0

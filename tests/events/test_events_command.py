@@ -155,6 +155,29 @@ def test_a_missing_group_is_recorded_and_the_other_band_still_measured(events_ru
     assert all("f150 not measured" in note for note in events["note"])
 
 
+def test_groups_the_site_pipeline_failed_fail_the_events(events_run, tmp_path, capsys):
+    """Every group failed in the site pipeline (its TOD files gone): `events` says which and
+    exits 1, not 0 with zero events and a warning; --partial accepts it."""
+    sim, root, _, _ = events_run
+    obs = sim.obs_ids[0]
+    files = sorted((root / "tod" / obs).glob("*.h5"))
+    config = write_site_config(root, path=tmp_path / "preprocess.yaml", template=PAPER,
+                               results=tmp_path / "results")
+    for f in files:
+        f.rename(tmp_path / f.name)
+    try:
+        run_site_pipeline(config)
+    finally:
+        for f in files:
+            (tmp_path / f.name).rename(f)
+    out = tmp_path / "events"
+    assert cli_main(["events", str(config), "-o", str(out), "-q"]) == 1
+    err = capsys.readouterr().err
+    assert f"FAILED {obs} w16/f090: site pipeline" in err and "w16/f150" in err
+    assert sorted(read(out, "failures")["group"]) == ["w16/f090", "w16/f150"]
+    assert cli_main(["events", str(config), "-o", str(out), "-q", "--partial"]) == 0
+
+
 def test_events_cross_matched_with_a_socat_catalogue(events_run, tmp_path):
     """The slow flare's position catalogued in socat at 100 mJy makes its event a flare of
     that source (3 Jy measured: above 5x); an asteroid whose ephemeris passes the fast flare at

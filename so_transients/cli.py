@@ -36,6 +36,7 @@ import sys
 import time
 from pathlib import Path
 
+log = logging.getLogger("so_transients.cli")
 DEMO_CONFIG = Path(__file__).resolve().parent.parent / "configs" / "sim_demo.yaml"
 
 
@@ -88,8 +89,15 @@ def _site_config(args):
                          "transient_significance step)")
     overrides = {}
     if args.max_far is not None:
+        from so_transients.significance.far import SignificanceConfig
+        SignificanceConfig(max_far=args.max_far)        # refused now, not in every group
         overrides["transient_significance"] = {"calc": {"max_far": args.max_far}}
     if args.known_sources is not None:
+        from so_transients.sources.catalog import read_catalogue
+        known = read_catalogue(args.known_sources, owner="--known-sources")
+        if not len(known):
+            log.warning("--known-sources %s lists no source: nothing will be masked",
+                        args.known_sources)
         overrides["transient_cuts"] = {"calc": {"known_sources":
                                                 str(Path(args.known_sources).resolve())}}
     template = PRODUCTION if args.mode == "production" else PAPER

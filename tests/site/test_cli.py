@@ -57,7 +57,8 @@ def test_site_config_writes_the_production_search_by_default(dataset):
 
 
 def test_site_config_paper_mode_and_overrides(dataset, tmp_path):
-    known = tmp_path / "known.ecsv"
+    known = tmp_path / "known.csv"
+    known.write_text("ra,dec\n10.0,-30.0\n")
     assert cli.main(["site-config", str(dataset), "--mode", "paper", "--known-sources",
                      str(known), "-o", str(tmp_path / "paper.yaml")]) == 0
     pipe = steps(tmp_path / "paper.yaml")
@@ -67,6 +68,26 @@ def test_site_config_paper_mode_and_overrides(dataset, tmp_path):
     assert cli.main(["site-config", str(dataset), "--max-far", "0.02"]) == 0
     assert steps(dataset / "preprocess.yaml")["transient_significance"]["calc"]["max_far"] \
         == 0.02
+
+
+@pytest.mark.parametrize("max_far", ["0", "-1"])
+def test_a_max_far_that_is_not_positive_is_refused_at_once(dataset, capsys, max_far):
+    assert cli.main(["site-config", str(dataset), "--max-far", max_far]) == 2
+    assert "max_far must be positive" in capsys.readouterr().err
+    assert not (dataset / "preprocess.yaml").exists()
+
+
+def test_a_known_source_list_is_read_when_the_config_is_written(dataset, tmp_path, capsys,
+                                                                caplog):
+    empty = tmp_path / "empty.csv"
+    empty.write_text("")
+    assert cli.main(["site-config", str(dataset), "--known-sources", str(empty)]) == 2
+    assert "--known-sources" in capsys.readouterr().err
+    header = tmp_path / "header.csv"
+    header.write_text("ra,dec\n")
+    with caplog.at_level("WARNING"):
+        assert cli.main(["site-config", str(dataset), "--known-sources", str(header)]) == 0
+    assert "lists no source" in caplog.text
 
 
 def test_max_far_in_paper_mode_is_refused(dataset, capsys):

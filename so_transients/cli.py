@@ -82,7 +82,7 @@ def _summary(args):
 
 
 def _site_config(args):
-    from so_transients.site.pipeline import PAPER, PRODUCTION, write_site_config
+    from so_transients.site.pipeline import PAPER, PRODUCTION, dataset_context, write_site_config
 
     if args.max_far is not None and args.mode == "paper":
         raise ValueError("--max-far needs the production mode (the paper's method has no "
@@ -101,7 +101,13 @@ def _site_config(args):
         overrides["transient_cuts"] = {"calc": {"known_sources":
                                                 str(Path(args.known_sources).resolve())}}
     template = PRODUCTION if args.mode == "production" else PAPER
-    print(write_site_config(args.dataset, args.out, template=template, overrides=overrides))
+    results, out = None, args.out
+    if args.mode == "paper":     # its own archive: never the production config's results
+        folder = dataset_context(args.dataset).parent
+        results = folder / "preprocess_paper"
+        out = out or folder / "preprocess_paper.yaml"
+    print(write_site_config(args.dataset, out, template=template, overrides=overrides,
+                            results=results))
 
 
 def _write_catalog(archive, out, overwrite, max_lost, candidates=False, by_time=False,
@@ -153,8 +159,8 @@ def _catalog(args):
 
 def _run(args):
     """The site pipeline on a config, then its catalogue and each group's losses."""
-    from so_transients.site.pipeline import archive_index, run_site_pipeline
-
+    from so_transients.site.pipeline import archive_index, build_steps, run_site_pipeline
+    from so_transients.site.steps_record import clear_archive, record_groups, stale_groups
     from so_transients.site.turnarounds import short_observations
 
     config = Path(args.config)
@@ -162,7 +168,20 @@ def _run(args):
     short = short_observations(config)
     if short:                # refused before the site pipeline stops inside sotodlib
         raise ValueError("\n  ".join(["observations too short for this config:", *short]))
+    build_steps(config)      # a misspelt key or a value out of range: refused, nothing run
+    stale = stale_groups(config)
+    if stale and not args.overwrite:
+        shown = ", ".join(stale[:4]) + (f" and {len(stale) - 4} more" if len(stale) > 4 else "")
+        raise ValueError(f"{config}: the archive {archive_index(config)} holds {len(stale)} "
+                         f"group(s) made with other steps than this config's (or by a run "
+                         f"that recorded none): {shown}; rerun with --overwrite to make them "
+                         f"again, or point archive: at another folder")
+    if stale:
+        for path in clear_archive(config):
+            print(f"so-transients run: --overwrite: deleted {path}", file=sys.stderr)
     done = run_site_pipeline(config, nproc=args.nproc, check=False)
+    if archive_index(config).is_file():
+        record_groups(config)
     if done.returncode:
         print(f"so-transients run: {config}: the site pipeline stopped (exit "
               f"{done.returncode}):\n{done.stderr[-3000:]}", file=sys.stderr)
@@ -310,7 +329,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("site-config", "write the site preprocess config for a dataset")
     p.add_argument("dataset", help="dataset folder (holds context.yaml)")
-    p.add_argument("-o", "--out", help="output YAML (default: DATASET/preprocess.yaml)")
+    p.add_argument("-o", "--out", help="output YAML (default: DATASET/preprocess.yaml; "
+                                       "paper mode DATASET/preprocess_paper.yaml, its archive "
+                                       "in DATASET/preprocess_paper/)")
     p.add_argument("--mode", choices=("production", "paper"), default="production",
                    help="production: coherent search with calibrated false-alarm rates "
                         "(configs/preprocess_production.yaml, default); paper: the reference "
@@ -337,6 +358,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--out", default=None,
                    help="detections table (default: detections.ecsv beside the archive)")
     p.add_argument("--nproc", type=int, default=1, help="worker processes of the site pipeline")
+    p.add_argument("--overwrite", action="store_true",
+                   help="delete an archive whose groups other steps made, and make them again "
+                        "(without it such an archive is refused, naming the groups)")
     partial(p)
     max_lost(p)
     p.set_defaults(func=_run)

@@ -24,6 +24,7 @@ from so_transients.events.config import load_events_config
 from so_transients.campaign.matching import compare_with_truth
 from so_transients.site.results import archive_table, write_table
 from so_transients.site.pipeline import failed_groups, run_site_pipeline, write_site_config
+from so_transients.site.steps_record import record_groups
 
 
 def report(matched: Table, flares: Table, crossings: dict, t0: float) -> str:
@@ -60,6 +61,7 @@ def run_demo(dataset: Path, nproc=2) -> str:
     config = write_site_config(dataset)
     t0 = time.time()
     run_site_pipeline(config, nproc=nproc, extra_args=["--overwrite"])
+    record_groups(config, remade=True)      # so that `so-transients run` may reuse them
     elapsed = time.time() - t0
     errors = failed_groups(config)
     if errors:

@@ -100,6 +100,17 @@ def check_config(config_path):
                          f"{config_path.parent}` again")
 
 
+def build_steps(config_path):
+    """Build sotodlib's preprocess ``Pipeline`` of the config's ``process_pipe`` here, so that
+    a misspelt key or a value out of range is refused (naming the step and key) before
+    anything runs; the site pipeline itself builds it only for groups it has not made. (The
+    transient steps are registered: importing any module of the package imports
+    ``so_transients`` first.)"""
+    from sotodlib.preprocess import Pipeline
+
+    Pipeline(read_config(config_path)["process_pipe"])
+
+
 def site_config(dataset, template=TEMPLATE, overrides=None, results=None) -> dict:
     """The preprocess config ``template`` pointed at ``dataset`` (its context.yaml), with the
     archive and plots in ``results`` (default ``<dataset>/preprocess``), as absolute paths

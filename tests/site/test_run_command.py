@@ -28,7 +28,7 @@ def test_a_good_run_exits_0_with_the_catalogue_in_time_order(config, capsys):
     assert "Detectors per group:" in out and "detectors used" in out
 
 
-def test_a_misspelt_key_fails_the_run_and_names_the_key(config, tmp_path, capsys):
+def test_a_misspelt_key_is_refused_before_anything_runs(config, tmp_path, capsys):
     cfg = read_config(config)                     # its paths resolved: written elsewhere
     for step in cfg["process_pipe"]:
         if step["name"] == "transient_find":
@@ -37,8 +37,35 @@ def test_a_misspelt_key_fails_the_run_and_names_the_key(config, tmp_path, capsys
     cfg["archive"]["index"] = str(tmp_path / "out" / "process_archive.sqlite")
     cfg["archive"]["policy"]["filename"] = str(tmp_path / "out" / "preprocess_archive.h5")
     bad.write_text(yaml.safe_dump(cfg, sort_keys=False))
-    assert cli.main(["run", str(bad)]) == 1
+    assert cli.main(["run", str(bad)]) == 2
     err = capsys.readouterr().err
-    assert "FAILED" in err and "snr_treshold" in err and "did you mean snr_threshold" in err
-    assert cli.main(["run", str(bad), "--partial"]) == 0
+    assert "snr_treshold" in err and "did you mean snr_threshold" in err
+    assert not (tmp_path / "out").exists()
+    # pointed at the archive the good run made, the same config is refused as well: the
+    # site pipeline would skip every group and never build it
+    cfg["archive"] = read_config(config)["archive"]
+    bad.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    assert cli.main(["run", str(bad)]) == 2
+    assert "snr_treshold" in capsys.readouterr().err
 
+
+def test_results_never_outlive_the_config_that_made_them(config, capsys):
+    """Edit a step's key and rerun: the archive's groups were made with other steps, so the
+    run is refused, naming them; --overwrite makes them again with the new steps."""
+    test_a_good_run_exits_0_with_the_catalogue_in_time_order(config, capsys)  # the archive
+    assert cli.main(["run", str(config)]) == 0             # the same steps: kept as they are
+    edited = Path(config).with_name("edited.yaml")
+    cfg = yaml.safe_load(Path(config).read_text())         # relative paths: the same archive
+    for step in cfg["process_pipe"]:
+        if step["name"] == "transient_fit":
+            step["calc"]["min_snr"] = 30.0
+    edited.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    capsys.readouterr()
+    assert cli.main(["run", str(edited)]) == 2
+    err = capsys.readouterr().err
+    assert "made with other steps" in err and "w16/f090" in err and "--overwrite" in err
+    assert cli.main(["run", str(edited), "--overwrite"]) == 0
+    table = Table.read(Path(config).parent / "preprocess" / "detections.ecsv")
+    assert len(table) and min(table["snr_fit"]) >= 30.0
+    assert cli.main(["run", str(edited)]) == 0             # now its own
+    assert cli.main(["run", str(config)]) == 2             # and no longer the first's

@@ -70,6 +70,15 @@ def test_site_config_paper_mode_and_overrides(dataset, tmp_path):
         == 0.02
 
 
+def test_paper_mode_gets_its_own_config_and_archive(dataset):
+    assert cli.main(["site-config", str(dataset)]) == 0
+    assert cli.main(["site-config", str(dataset), "--mode", "paper"]) == 0
+    production = yaml.safe_load((dataset / "preprocess.yaml").read_text())
+    paper = yaml.safe_load((dataset / "preprocess_paper.yaml").read_text())
+    assert paper["archive"]["index"] == "preprocess_paper/process_archive.sqlite"
+    assert production["archive"]["index"] == "preprocess/process_archive.sqlite"
+
+
 @pytest.mark.parametrize("max_far", ["0", "-1"])
 def test_a_max_far_that_is_not_positive_is_refused_at_once(dataset, capsys, max_far):
     assert cli.main(["site-config", str(dataset), "--max-far", max_far]) == 2

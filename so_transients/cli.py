@@ -160,6 +160,7 @@ def _catalog(args):
 def _run(args):
     """The site pipeline on a config, then its catalogue and each group's losses."""
     from so_transients.site.pipeline import archive_index, build_steps, run_site_pipeline
+    from so_transients.site.results import remove_orphans
     from so_transients.site.steps_record import clear_archive, record_groups, stale_groups
     from so_transients.site.turnarounds import short_observations
 
@@ -179,9 +180,13 @@ def _run(args):
     if stale:
         for path in clear_archive(config):
             print(f"so-transients run: --overwrite: deleted {path}", file=sys.stderr)
-    done = run_site_pipeline(config, nproc=args.nproc, check=False)
-    if archive_index(config).is_file():
-        record_groups(config)
+    for item in remove_orphans(config):       # left by a run that was stopped
+        print(f"so-transients run: removed {item} (written, never indexed)", file=sys.stderr)
+    try:
+        done = run_site_pipeline(config, nproc=args.nproc, check=False)
+    finally:                                   # stopped or not: the groups it made are its
+        if archive_index(config).is_file():
+            record_groups(config)
     if done.returncode:
         print(f"so-transients run: {config}: the site pipeline stopped (exit "
               f"{done.returncode}):\n{done.stderr[-3000:]}", file=sys.stderr)

@@ -12,11 +12,14 @@ whose absolute paths point at another.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import re
+import signal
 import subprocess
 import sys
 import tempfile
+import threading
 from pathlib import Path
 
 import yaml
@@ -195,10 +198,62 @@ def run_site_pipeline(config_path, nproc=1, extra_args=(), check=True):
         cmd = [sys.executable, "-m", "so_transients.site.run", str(config_path),
                "--nproc", str(nproc), "--verbosity", "1", "--pb-path", pb_dir, *extra_args]
         try:       # from the config's folder: sotodlib resolves its paths against it
-            return subprocess.run(cmd, env=env, check=check, capture_output=True, text=True,
-                                  cwd=config_path.parent)
+            # its own session: a signal to this process stops it and its workers too
+            with subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                  text=True, cwd=config_path.parent,
+                                  start_new_session=True) as proc, _owned(proc):
+                out, err = proc.communicate()
+            done = subprocess.CompletedProcess(cmd, proc.returncode, out, err)
+            if check:
+                done.check_returncode()
+            return done
         finally:
             remove_empty_leftovers(config_path)
+
+
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+
+
+@contextlib.contextmanager
+def _owned(proc):
+    """While ``proc`` runs, a SIGTERM, SIGINT or SIGHUP to this process stops ``proc``'s
+    whole process group (the site pipeline and its pool's workers: SIGTERM, then SIGKILL
+    after 10 s) and then ends this process with status 128 + the signal's number. Only in
+    the main thread (elsewhere signals cannot be caught, and nothing changes)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum, frame):
+        stop_group(proc)
+        raise SystemExit(128 + signum)
+
+    previous = {sig: signal.signal(sig, stop) for sig in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        if proc.poll() is None:          # left by an exception: never orphaned
+            stop_group(proc)
+
+
+def stop_group(proc, grace=10.0):
+    """SIGTERM to ``proc``'s process group, then SIGKILL to whatever is left of it after
+    ``grace`` s (or once the leader is gone: its pool's workers)."""
+    try:
+        os.killpg(proc.pid, signal.SIGTERM)
+    except ProcessLookupError:
+        return
+    try:
+        proc.wait(grace)
+    except subprocess.TimeoutExpired:
+        pass
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    proc.wait()
 
 
 def remove_empty_leftovers(config_path):

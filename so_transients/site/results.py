@@ -346,3 +346,32 @@ def write_table(table: Table, path, config=None, obs_ids=None, overwrite=False) 
         extra["comment"] = "# "
     out.write(path, format=fmt, overwrite=overwrite, **extra)
     return path
+
+
+def remove_orphans(config_path) -> list:
+    """Groups of the archive's HDF5 files that its index does not name (a run stopped
+    between writing a group and indexing it; sotodlib would fail to write it again with
+    ``destination object already exists``), and files left in its ``temp/`` folder:
+    deleted. Returns what was deleted, as ``file:group`` or file paths."""
+    import h5py
+
+    cfg = read_config(config_path)
+    index = Path(cfg["archive"]["index"])
+    policy = Path(cfg["archive"]["policy"]["filename"])
+    gone = []
+    for leftover in sorted((policy.parent / "temp").glob("*")):
+        if leftover.is_file():
+            leftover.unlink()
+            gone.append(str(leftover))
+    files = sorted(policy.parent.glob(policy.stem + "*" + policy.suffix))
+    if not files:
+        return gone
+    named = {(Path(f).resolve(), d) for _, _, f, d in archive_entries(index)} \
+        if index.is_file() else set()
+    for path in files:
+        with h5py.File(path, "a") as h5:
+            for name in list(h5.keys()):
+                if (path.resolve(), name) not in named:
+                    del h5[name]
+                    gone.append(f"{path}:{name}")
+    return gone

@@ -1,7 +1,12 @@
 """``so-transients run CONFIG``: the site pipeline, the catalogue and the groups' losses in one
 command, whose exit status says whether every group was made."""
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 from astropy.table import Table
@@ -69,3 +74,43 @@ def test_results_never_outlive_the_config_that_made_them(config, capsys):
     assert len(table) and min(table["snr_fit"]) >= 30.0
     assert cli.main(["run", str(edited)]) == 0             # now its own
     assert cli.main(["run", str(config)]) == 2             # and no longer the first's
+
+
+def processes_running(text):
+    """PIDs of the processes whose command line contains ``text``."""
+    out = []
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            if text in cmdline.read_bytes().replace(b"\0", b" ").decode(errors="replace"):
+                out.append(int(cmdline.parent.name))
+        except OSError:
+            pass
+    return out
+
+
+def test_a_stopped_run_stops_its_workers_and_the_next_run_continues(config, two_flare_dataset,
+                                                                    tmp_path, capsys):
+    """SIGTERM to `run` while the site pipeline works: it stops the pipeline and its
+    workers (nothing left running, still writing), exits 143, and a rerun right after makes
+    the same detections as an uninterrupted run."""
+    assert cli.main(["run", str(config)]) == 0                      # the uninterrupted run
+    reference = Table.read(Path(config).parent / "preprocess" / "detections.ecsv")
+    stopped = write_site_config(two_flare_dataset.context.parent, path=tmp_path / "pp.yaml",
+                                results=tmp_path / "preprocess", template=PAPER)
+    proc = subprocess.Popen([sys.executable, "-m", "so_transients.cli", "run", str(stopped),
+                             "--nproc", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    t0 = time.monotonic()
+    while not processes_running(f"so_transients.site.run {stopped}"):
+        assert proc.poll() is None and time.monotonic() - t0 < 120, proc.communicate()
+        time.sleep(0.2)
+    time.sleep(5.0)                                       # the pool's workers are at work
+    assert proc.poll() is None, "the run ended before it could be stopped"
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(60) == 143
+    time.sleep(1.0)
+    assert processes_running(str(stopped)) == []
+    assert cli.main(["run", str(stopped)]) == 0
+    again = Table.read(tmp_path / "preprocess" / "detections.ecsv")
+    assert len(again) == len(reference)
+    for name in ("t_peak", "flux", "snr_fit", "ra_deg", "dec_deg"):
+        assert np.allclose(again[name], reference[name], rtol=1e-6), name

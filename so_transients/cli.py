@@ -36,6 +36,8 @@ import sys
 import time
 from pathlib import Path
 
+from so_transients.site.selection import ObsSelection, add_selection_arguments
+
 log = logging.getLogger("so_transients.cli")
 DEMO_CONFIG = Path(__file__).resolve().parent.parent / "configs" / "sim_demo.yaml"
 
@@ -111,22 +113,24 @@ def _site_config(args):
 
 
 def _write_catalog(archive, out, overwrite, max_lost, candidates=False, by_time=False,
-                   groups=None):
+                   groups=None, selection=None):
     """Write the archive's detections (``candidates``: every candidate) to ``out``, print
     what was written, the groups expected, archived and failed, and each group's losses
-    (also written to ``groups`` when given); return the :class:`ArchiveStatus`."""
+    (also written to ``groups`` when given), of the observations ``selection`` takes;
+    return the :class:`ArchiveStatus`."""
     from so_transients.site.losses import group_losses, report
     from so_transients.site.results import archive_status, archive_table, write_table
 
-    status = archive_status(archive)
-    table = archive_table(archive, detected_only=not candidates)
+    status = archive_status(archive, selection)
+    chosen = None if selection is None or selection.everything else set(status.obs_ids)
+    table = archive_table(archive, detected_only=not candidates, obs_ids=chosen)
     if by_time and len(table):
         table.sort("t_peak")
     path = write_table(table, out, config=status.config, obs_ids=status.obs_ids,
                        overwrite=overwrite)
     print(f"{len(table)} {'candidates' if candidates else 'detections'} written to {path}")
     print(status.report())
-    losses = group_losses(archive, max_lost)
+    losses = group_losses(archive, max_lost, obs_ids=chosen)
     print("Detectors per group:")
     print(report(losses))
     if groups:
@@ -153,7 +157,8 @@ def _catalog(args):
 
     output_format(args.out, args.overwrite)          # refuse before the slow part
     status = _write_catalog(args.config, args.out, args.overwrite, args.max_lost,
-                            candidates=args.all, groups=args.groups, by_time=True)
+                            candidates=args.all, groups=args.groups, by_time=True,
+                            selection=ObsSelection.from_args(args))
     return _failures("catalog", status, args.partial)
 
 
@@ -165,6 +170,7 @@ def _run(args):
     from so_transients.site.turnarounds import short_observations
 
     config = Path(args.config)
+    selection = ObsSelection.from_args(args)
     out = Path(args.out) if args.out else archive_index(config).parent / "detections.ecsv"
     short = short_observations(config)
     if short:                # refused before the site pipeline stops inside sotodlib
@@ -183,7 +189,8 @@ def _run(args):
     for item in remove_orphans(config):       # left by a run that was stopped
         print(f"so-transients run: removed {item} (written, never indexed)", file=sys.stderr)
     try:
-        done = run_site_pipeline(config, nproc=args.nproc, check=False)
+        done = run_site_pipeline(config, nproc=args.nproc, check=False,
+                                 extra_args=selection.preprocess_args())
     finally:                                   # stopped or not: the groups it made are its
         if archive_index(config).is_file():
             record_groups(config)
@@ -195,7 +202,8 @@ def _run(args):
     for line in dict.fromkeys(done.stderr.splitlines()):
         if "WARNING" in line and "so_transients" in line:
             print(line, file=sys.stderr)
-    status = _write_catalog(config, out, overwrite=True, max_lost=args.max_lost, by_time=True)
+    status = _write_catalog(config, out, overwrite=True, max_lost=args.max_lost, by_time=True,
+                            selection=selection)
     return _failures("run", status, args.partial)
 
 
@@ -240,7 +248,8 @@ def _campaign(args):
 def _events(args):
     from so_transients.events.command import main
 
-    return main(args.config, args.out, args.nproc, args.partial, args.quiet)
+    return main(args.config, args.out, args.nproc, args.partial, args.quiet,
+                ObsSelection.from_args(args))
 
 
 def _db(args):
@@ -366,6 +375,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true",
                    help="delete an archive whose groups other steps made, and make them again "
                         "(without it such an archive is refused, naming the groups)")
+    add_selection_arguments(p)
     partial(p)
     max_lost(p)
     p.set_defaults(func=_run)
@@ -381,6 +391,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--groups", default=None, metavar="FILE",
                    help="also write each group's losses (detectors removed and why, samples "
                         "masked) to this table")
+    add_selection_arguments(p)
     partial(p)
     max_lost(p)
     p.set_defaults(func=_catalog)

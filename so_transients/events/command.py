@@ -43,6 +43,7 @@ from so_transients.site.results import (
     archive_entries, archive_status, archive_table, output_format
 )
 from so_transients.site.pipeline import archive_index
+from so_transients.site.selection import ObsSelection, add_selection_arguments
 from so_transients.events.config import EventsConfig, load_events_config
 from so_transients.events.group_photometry import GroupJob, run_job, tracks_path
 from so_transients.events.tables import (
@@ -63,6 +64,7 @@ def get_parser(parser=None):
     parser.add_argument("--partial", action="store_true",
                         help="exit 0 when some groups failed (they are still listed)")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    add_selection_arguments(parser)
     return parser
 
 
@@ -158,15 +160,18 @@ def failures_table(statuses, site_failed=None) -> Table:
                   "error": [s["error"] for s in failed] or np.zeros(0, str)})
 
 
-def build_events(cfg: EventsConfig, progress=True, pool=None, as_completed=None) -> dict:
-    """Run every step; returns the tables written (events, lightcurves, fits, failures)."""
+def build_events(cfg: EventsConfig, progress=True, pool=None, as_completed=None,
+                 selection: ObsSelection | None = None) -> dict:
+    """Run every step, on the observations ``selection`` takes (all without); returns the
+    tables written (events, lightcurves, fits, failures)."""
     out = Path(cfg.output)
     out.mkdir(parents=True, exist_ok=True)
     catalogue = read_catalogue(cfg.catalogue) if cfg.catalogue else None   # before the work
-    status = archive_status(cfg.preprocess)
+    status = archive_status(cfg.preprocess, selection)
     if not status.complete:
         log.warning("%s\n(the events use the groups in the archive)", status.report())
-    cands = archive_table(cfg.preprocess, detected_only=False)
+    chosen = None if selection is None or selection.everything else set(status.obs_ids)
+    cands = archive_table(cfg.preprocess, detected_only=False, obs_ids=chosen)
     detections = cands[np.asarray(cands["detected"], bool)]
     events, labels = associate_detections(detections, cfg.association)
     jobs = make_jobs(cfg, events, cands, out) if len(events) else []
@@ -234,23 +239,24 @@ def summary(tables: dict, out: Path) -> str:
     return "\n".join(lines)
 
 
-def run_events(cfg: EventsConfig, progress=True):
+def run_events(cfg: EventsConfig, progress=True, selection=None):
     """:func:`build_events` with ``cfg.nproc`` workers from sotodlib's executor; None on an
     MPI worker rank (it served units until rank 0 finished)."""
     pool, as_completed = executor(cfg.nproc)
     if is_worker_rank(pool, cfg.nproc):
         return None
     try:
-        return build_events(cfg, progress=progress, pool=pool, as_completed=as_completed)
+        return build_events(cfg, progress=progress, pool=pool, as_completed=as_completed,
+                            selection=selection)
     finally:
         if pool is not None:
             pool.shutdown()
 
 
-def main(config, out=None, nproc=None, partial=False, quiet=False):
+def main(config, out=None, nproc=None, partial=False, quiet=False, selection=None):
     """Exit status: 0 done, 1 when a work unit failed (0 with ``partial``)."""
     cfg = load_events_config(config, {"output": out, "nproc": nproc})
-    tables = run_events(cfg, progress=not quiet)
+    tables = run_events(cfg, progress=not quiet, selection=selection)
     if tables is None:
         return 0
     print(summary(tables, Path(cfg.output)))
@@ -267,4 +273,5 @@ def main(config, out=None, nproc=None, partial=False, quiet=False):
 
 if __name__ == "__main__":
     args = get_parser().parse_args()
-    sys.exit(main(args.config, args.out, args.nproc, args.partial, args.quiet))
+    sys.exit(main(args.config, args.out, args.nproc, args.partial, args.quiet,
+                  ObsSelection.from_args(args)))

@@ -78,12 +78,14 @@ def proc_losses(proc) -> dict:
     return out
 
 
-def group_losses(archive_or_config, max_lost=0.3) -> Table:
+def group_losses(archive_or_config, max_lost=0.3, obs_ids=None) -> Table:
     """One row per archived group (obs_id, its tags, :func:`proc_losses`); a warning naming
     the observation, the group and the reasons for each that lost more than ``max_lost`` of
-    its detectors."""
+    its detectors (of ``obs_ids`` only, when given)."""
     rows = []
     for obs_id, tags, filename, dataset in archive_entries(archive_index(archive_or_config)):
+        if obs_ids is not None and obs_id not in obs_ids:
+            continue
         proc = core.AxisManager.load(filename, dataset)
         row = {"obs_id": obs_id, "group": "/".join(str(v) for v in tags.values()),
                **proc_losses(proc)}

@@ -40,6 +40,7 @@ from so_transients.common.tables import FORMATS, for_writing, read_table
 from so_transients.site.provenance import attach, provenance
 from so_transients.site.pipeline import archive_index, check_config, errlog_entries, read_config
 from so_transients.preprocess.slot_storage import unpack
+from so_transients.site.selection import ObsSelection
 
 #: Columns of every table read back, in order.
 FIRST = ["obs_id"] + candidates.names(saved=True)
@@ -101,11 +102,13 @@ def _public(table: Table, detected_only) -> Table:
     return with_readable_columns(table)
 
 
-def archive_table(archive_or_config, detected_only=True) -> Table:
-    """Every group of every observation in an archive, one group at a time, as one table
-    (positions also in degrees: :func:`with_readable_columns`)."""
+def archive_table(archive_or_config, detected_only=True, obs_ids=None) -> Table:
+    """Every group of every observation in an archive (of ``obs_ids`` only, when given), one
+    group at a time, as one table (positions also in degrees: :func:`with_readable_columns`)."""
     tables = []
     for obs_id, tags, filename, dataset in archive_entries(archive_index(archive_or_config)):
+        if obs_ids is not None and obs_id not in obs_ids:
+            continue
         proc = core.AxisManager.load(filename, dataset)
         tables.append(proc_table(proc, obs_id, tags.get("wafer_slot")))
     table = vstack(tables) if tables else _empty_table()
@@ -156,16 +159,27 @@ def config_of(archive_or_config):
     return None
 
 
-def expected_groups(config) -> set:
+def selected_obs(config, selection: ObsSelection | None) -> set | None:
+    """obs_ids of the config's ObsDb that ``selection`` takes (None: no selection, all)."""
+    if selection is None or selection.everything:
+        return None
+    return selection.obs_ids(core.Context(read_config(config)["context_file"]))
+
+
+def expected_groups(config, selection: ObsSelection | None = None) -> set:
     """{(obs_id, group)} the site pipeline runs for ``config``: every observation of the
-    ObsDb times the groups of its ``subobs.use`` fields (here one per wafer and band), as
-    sotodlib's ``get_groups`` makes them (groups with a field ``NC`` are never run)."""
+    ObsDb (or those ``selection`` takes) times the groups of its ``subobs.use`` fields (here
+    one per wafer and band), as sotodlib's ``get_groups`` makes them (groups with a field
+    ``NC`` are never run)."""
     from sotodlib.preprocess import preprocess_util as pp_util
 
     cfg = read_config(config)
     context = core.Context(cfg["context_file"])
+    chosen = selected_obs(config, selection)
     out = set()
     for obs in context.obsdb.query():
+        if chosen is not None and obs["obs_id"] not in chosen:
+            continue
         _, groups, error = pp_util.get_groups(obs["obs_id"], cfg, context)
         if error[0] is not None:
             raise ValueError(f"{config}: {obs['obs_id']}: cannot list its groups: {error[1]}")
@@ -211,19 +225,26 @@ class ArchiveStatus:
         return "\n".join(lines)
 
 
-def archive_status(archive_or_config) -> ArchiveStatus:
+def archive_status(archive_or_config, selection: ObsSelection | None = None) -> ArchiveStatus:
     """Groups expected (:func:`expected_groups`), archived, and failed with the reason from
     the errlog (groups in the errlog and not in the archive; with a config, also groups
-    expected and in neither)."""
+    expected and in neither); with a ``selection`` (a config needed), of the observations
+    it takes only."""
     config = config_of(archive_or_config)
     if config is not None:
         check_config(config)
+    elif selection is not None and not selection.everything:
+        raise ValueError(f"{archive_or_config}: selecting observations needs the preprocess "
+                         "config (its ObsDb), not the archive index")
     index = archive_index(archive_or_config)
     entries = archive_entries(index)
     fields = group_fields(config, entries)
-    archived = {(obs, tuple(str(tags[f]) for f in fields)) for obs, tags, _, _ in entries}
-    expected = expected_groups(config) if config is not None else None
-    errors = errlog_entries(index.parent)
+    chosen = selected_obs(config, selection) if config is not None else None
+    take = (lambda obs: True) if chosen is None else (lambda obs: obs in chosen)
+    archived = {(obs, tuple(str(tags[f]) for f in fields)) for obs, tags, _, _ in entries
+                if take(obs)}
+    expected = expected_groups(config, selection) if config is not None else None
+    errors = {k: v for k, v in errlog_entries(index.parent).items() if take(k[0])}
     missing = (expected or set()) - archived
     failed = {k: errors.get(k, ("missing", "not in the archive and not in errlog.txt"))
               for k in missing}

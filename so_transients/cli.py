@@ -172,7 +172,7 @@ def _run(args):
     config = Path(args.config)
     selection = ObsSelection.from_args(args)
     out = Path(args.out) if args.out else archive_index(config).parent / "detections.ecsv"
-    short = short_observations(config)
+    short = short_observations(config, selection)
     if short:                # refused before the site pipeline stops inside sotodlib
         raise ValueError("\n  ".join(["observations too short for this config:", *short]))
     build_steps(config)      # a misspelt key or a value out of range: refused, nothing run

@@ -10,11 +10,15 @@ observation's boresight (one detector, no signal), and names each with its durat
 """
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 from sotodlib import core
 
 from so_transients.site.pipeline import read_config
 from so_transients.site.summary import count_scans
+
+log = logging.getLogger(__name__)
 
 #: Turnarounds sotodlib's flag_turnarounds (``method: scanspeed``) needs in an observation.
 MIN_TURNAROUNDS = 2
@@ -53,23 +57,41 @@ def observation_turnarounds(context, obs_id) -> tuple:
     det_info = context.get_det_info(obs_id)
     if not len(det_info):
         raise ValueError(f"{obs_id}: no detectors in the dataset's det_info")
-    aman = context.get_obs(obs_id, dets=list(det_info["readout_id"][:1]), no_signal=True)
-    t = np.asarray(aman.timestamps)
-    return float(t[-1] - t[0]), count_turnarounds(aman.boresight.az)
+    first = {}                     # the first detector of each detset: one file each
+    for detset, readout_id in zip(det_info["detset"], det_info["readout_id"]):
+        first.setdefault(detset, readout_id)
+    errors = []
+    for detset, readout_id in first.items():
+        try:
+            aman = context.get_obs(obs_id, dets=[readout_id], no_signal=True)
+        except (OSError, ValueError, KeyError) as exc:   # that detset's file: its groups fail
+            errors.append(f"{detset}: {exc}")
+            continue
+        t = np.asarray(aman.timestamps)
+        return float(t[-1] - t[0]), count_turnarounds(aman.boresight.az)
+    raise OSError(f"{obs_id}: no detset can be read ({'; '.join(errors)})")
 
 
-def short_observations(config_path) -> list:
-    """One line per observation of a site preprocess config's dataset that its
-    ``flag_turnarounds`` step (``method: scanspeed``) cannot flag: fewer than
-    :data:`MIN_TURNAROUNDS` turnarounds. Each names the observation, its duration and its
-    turnarounds; [] when the config runs no such step."""
+def short_observations(config_path, selection=None) -> list:
+    """One line per observation of a site preprocess config's dataset (of those
+    ``selection`` takes) that its ``flag_turnarounds`` step (``method: scanspeed``) cannot
+    flag: fewer than :data:`MIN_TURNAROUNDS` turnarounds. Each names the observation, its
+    duration and its turnarounds; [] when the config runs no such step. An observation whose
+    files cannot be read is left to the site pipeline, where its groups fail, named."""
     cfg = read_config(config_path)
     if not scanspeed_steps(cfg.get("process_pipe") or []):
         return []
     context = core.Context(cfg["context_file"])
+    chosen = None if selection is None or selection.everything else selection.obs_ids(context)
     lines = []
     for obs in context.obsdb.query():
-        duration, n = observation_turnarounds(context, obs["obs_id"])
+        if chosen is not None and obs["obs_id"] not in chosen:
+            continue
+        try:
+            duration, n = observation_turnarounds(context, obs["obs_id"])
+        except OSError as exc:
+            log.warning("%s: cannot check its turnarounds: %s", config_path, exc)
+            continue
         if n < MIN_TURNAROUNDS:
             lines.append(f"{obs['obs_id']}: {duration:.0f} s with {n} turnaround(s), too short "
                          f"for flag_turnarounds (method scanspeed) of {config_path}: it needs "

@@ -43,3 +43,22 @@ def test_the_second_night_alone(two_nights, capsys):
                      *night]) == 0
     assert cli.main(["events", str(config), "-o", str(config.parent / "events_all"),
                      "-q"]) == 1
+
+
+def test_a_missing_file_fails_only_its_group(two_nights, tmp_path, capsys):
+    """The first night's only TOD file gone (it holds the ObsDb's first detector): `run`
+    still makes the second night, and exits 1 naming the first's group and file."""
+    sim, _ = two_nights
+    first, second = sorted(sim.obs_ids)
+    config = write_site_config(sim.context.parent, path=tmp_path / "pp.yaml",
+                               results=tmp_path / "preprocess", template=PAPER)
+    tod = next((sim.context.parent / "tod" / first).glob("*.h5"))
+    tod.rename(tmp_path / tod.name)
+    try:
+        assert cli.main(["run", str(config)]) == 1
+    finally:
+        (tmp_path / tod.name).rename(tod)
+    err = capsys.readouterr().err
+    assert f"FAILED {first} w16/f090" in err and f"FAILED {second}" not in err
+    table = Table.read(tmp_path / "preprocess" / "detections.ecsv")
+    assert set(table["obs_id"]) <= {second}

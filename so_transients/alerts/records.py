@@ -197,6 +197,8 @@ def event_record(event, fits, tense, ident, record_number, alert_type, created,
     far = float(far_hz(event))
     if np.isfinite(far):
         record["far"] = float(far)
+        record["far_is_upper_limit"] = bool(event["far_is_limit"]) \
+            if "far_is_limit" in event.colnames else False
     if supersedes:
         record.update(supersedes=supersedes, update_message=message)
     validate(record)

@@ -20,6 +20,7 @@ CITE = {"subsequent": "followup", "update": "supersedes", "retraction": "retract
 PARAMS = {
     "alert_tense": (None, None), "alert_type": (None, None), "record_number": (None, None),
     "event_name": (None, "meta.id"), "snr": (None, "stat.snr"), "far": ("Hz", None),
+    "far_is_upper_limit": (None, None),
     "flux_density_mjy": ("mJy", "phot.flux.density"),
     "flux_density_error_mjy": ("mJy", "stat.error;phot.flux.density"),
     "flux_density": ("erg/cm2/s/Hz", "phot.flux.density"),

@@ -107,6 +107,10 @@ SCHEMA = (
     Column("far_inverted", "float", "1 / h", _S, "far from the sign-inverted data's maxima "
                                                  "(counted, or beyond tail_from its tail "
                                                  "model where higher)"),
+    Column("far_is_limit", "bool", None, _S, "far is an upper limit, not a count: no time "
+                                             "slide reached this Z, so far is the slides' "
+                                             "resolution (half a false alarm in their live "
+                                             "time) and the sign-inverted data give no more"),
     Column("pass_far", "bool", None, _S, "far <= max_far (True without the step or max_far)",
            missing=True),
     Column("flux", "float", "mJy", _T, "fitted amplitude A0 of the beam model"),

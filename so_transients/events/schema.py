@@ -53,6 +53,8 @@ EVENTS = (
     Column("note", "str", None, _E, "what could not be measured, '' if nothing"),
     Column("far", "float", "1 / h", _E, "lowest false-alarm rate of its detections, per "
                                         "wafer-band-hour (transient_significance; NaN without)"),
+    Column("far_is_limit", "bool", None, _E, "that far is an upper limit (the time slides' "
+                                             "resolution), not a count"),
     Column("catalogue", "str", None, _E, "catalogue of the cross-matched source (the events "
                                          "config's `catalogue`), '' if none matched"),
     Column("cat_source_id", "int", None, _E, "its id there (socat source_id, or sso_id of a "

@@ -53,6 +53,8 @@ def associate_detections(detections: Table, cfg: AssociationConfig):
     t = np.asarray(detections["t_peak"], float)
     far = (np.asarray(detections["far"], float) if "far" in detections.colnames
            else np.full(len(t), np.nan))
+    bound = (np.asarray(detections["far_is_limit"], bool)
+             if "far_is_limit" in detections.colnames else np.zeros(len(t), bool))
     labels = link(ra, dec, sigma, t, cfg)
     rows = []
     for k in range(labels.max() + 1 if len(labels) else 0):
@@ -67,7 +69,10 @@ def associate_detections(detections: Table, cfg: AssociationConfig):
                          peak_flux=detections["flux"][bright],
                          peak_flux_err=detections["flux_err"][bright],
                          peak_band=detections["bandpass"][bright],
-                         far=np.fmin.reduce(far[mine]), _sigma=e_sig))
+                         far=np.fmin.reduce(far[mine]),
+                         far_is_limit=bool(np.isfinite(far[mine]).any()
+                                           and bound[mine][np.nanargmin(far[mine])]),
+                         _sigma=e_sig))
     if not rows:
         return typed_table(schema.EVENTS, {}), labels
     cols = {k: np.asarray([r[k] for r in rows]) for k in rows[0]}

@@ -41,7 +41,7 @@ from so_transients.detect import spectral_ops
 from so_transients.detect.common_mode import ExcursionConfig, mask_excursions
 from so_transients.detect.health import health_warnings, weight_health
 from so_transients.detect.jumps import JumpConfig, remove_common_jumps
-from so_transients.significance.far import SignificanceConfig
+from so_transients.significance.far import SignificanceConfig, far_is_limit
 from so_transients.significance.joint_far import significance_with_joint
 from so_transients.coherent.vetoes import Vetoes
 from so_transients.coherent.sweep_stack import StackSettings
@@ -637,7 +637,8 @@ class TransientSignificance(_Preprocess):
 
     Reads the scans ``transient_find`` searched (``aman.transient_scan``). In
     ``aman.transient_candidates``: ``coherent_snr``, ``coherent_chi2``,
-    ``coherent_consistent``, ``far``, ``far_slides``, ``far_inverted`` (1/h), ``pass_far``;
+    ``coherent_consistent``, ``far``, ``far_slides``, ``far_inverted`` (1/h),
+    ``far_is_limit`` (``far`` is the slides' resolution, a bound), ``pass_far``;
     the group's background live time and Z scale as ``significance_live_hours`` and
     ``significance_z_scale``. Saved to the archive as ``proc_aman.transient_significance``
     (on the detector axis, keyed by ``cand_id``).
@@ -697,6 +698,7 @@ class TransientSignificance(_Preprocess):
             log.warning("%s: %s: %.2f h of slides cannot resolve max_far = %g per hour (every "
                         "single-crossing candidate has far >= %.3g): raise n_slides",
                         self.name, GroupName(aman), live, self.cfg.max_far, 0.5 / live)
+        result["far_is_limit"] = far_is_limit(result["far"], result["far_slides"], live)
         candidates.add_to_aman(cands, result, CAND_AXIS)
         _replace(cands, "significance_live_hours", live)
         _replace(cands, "significance_z_scale", scale)

@@ -241,6 +241,21 @@ def inverted_maxima(z, snr, geometry, rows, beam_sigma, sigma_amp, live, scale, 
     return -z[r, s], vetoes.consistent(chi2, -z[r, s] / scale)
 
 
+def far_is_limit(far, far_slides, slide_hours) -> np.ndarray:
+    """Whether each ``far`` is an upper limit: its ``far_slides`` is the slides' resolution,
+    half a false alarm in their ``slide_hours`` (no slide maximum reached the statistic; see
+    :func:`so_transients.coherent.statistic.false_alarm_rate`), and ``far`` is that value
+    (the sign-inverted data give no more). Sweep stacks, ranked among their own slides'
+    stacks, are not marked."""
+    far, slides = np.asarray(far, float), np.asarray(far_slides, float)
+    if not slide_hours > 0:
+        return np.zeros(far.shape, bool)
+    resolution = 0.5 / slide_hours
+    with np.errstate(invalid="ignore"):
+        return (np.isfinite(far) & np.isclose(slides, resolution, rtol=1e-9, atol=0)
+                & (far <= slides))
+
+
 def inverted_rate(statistics, inverted, live_hours, x0):
     """False alarms per hour from the sign-inverted data's maxima ``inverted`` (units of the
     statistics) over ``live_hours``: the count at least as large, or beyond ``x0`` the

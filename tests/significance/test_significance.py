@@ -192,3 +192,13 @@ def test_slides_follow_max_far_when_n_slides_is_null():
     assert SignificanceConfig(n_slides=7, max_far=0.005).slides_for(1.0) == 7
     with pytest.raises(ConfigError, match="requires max_far"):
         SignificanceConfig(n_slides=None)
+
+
+def test_a_far_at_the_slides_resolution_is_marked_as_a_bound():
+    from so_transients.significance.far import far_is_limit
+    hours = 110.0
+    far_slides = np.array([0.5 / hours, 1 / hours, 0.5 / hours, np.nan, 0.5 / hours])
+    far = np.array([0.5 / hours, 1 / hours, 3 / hours, np.nan, 0.5 / hours])
+    # no slide above; one above; the inverted data count more; no far; ... on no slides
+    assert list(far_is_limit(far, far_slides, hours)) == [True, False, False, False, True]
+    assert not far_is_limit(far, far_slides, 0.0).any()

@@ -96,3 +96,6 @@ def test_the_bright_flare_is_the_one_detection_at_its_place_and_flux(run):
     assert abs(d["t_peak"] - truth["t_peak"]) < 0.5
     if mode == "coherent":
         assert np.isfinite(d["far"]) and d["pass_far"]
+        # a 3 Jy flare is far above every time slide's maximum: its far is the slides'
+        # resolution, and says it is a bound
+        assert d["far_is_limit"] and d["far"] == pytest.approx(d["far_slides"])

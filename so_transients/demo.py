@@ -23,7 +23,9 @@ from so_transients.events.command import run_events, summary
 from so_transients.events.config import load_events_config
 from so_transients.campaign.matching import compare_with_truth
 from so_transients.site.results import archive_table, write_table
-from so_transients.site.pipeline import failed_groups, run_site_pipeline, write_site_config
+from so_transients.site.pipeline import (
+    archive_index, failed_groups, run_site_pipeline, write_site_config
+)
 from so_transients.site.steps_record import record_groups
 
 
@@ -68,12 +70,13 @@ def run_demo(dataset: Path, nproc=2) -> str:
         raise RuntimeError(f"the site pipeline failed on some groups:\n{errors}")
     detections = archive_table(config)
     detections.sort("t_peak")                       # a catalogue reads in time order
-    write_table(detections, dataset / "detections.ecsv", config=config, overwrite=True)
+    table_path = archive_index(config).parent / "detections.ecsv"      # where `run` writes it
+    write_table(detections, table_path, config=config, overwrite=True)
     matched, flares, crossings = compare_with_truth(dataset, detections)
     start = min(o["start_time"] for o in core.Context(str(dataset / "context.yaml")).obsdb.query())
     text = (f"Site pipeline: {elapsed:.0f} s (config {config}); archive "
             f"{dataset / 'preprocess'}\n" + report(matched, flares, crossings, start)
-            + f"\nDetections table: {dataset / 'detections.ecsv'}; plots under "
+            + f"\nDetections table: {table_path}; plots under "
               f"{dataset / 'preprocess' / 'plots'}")
     return text + "\n\nEvents (so-transients events):\n" + events_report(config, nproc)
 

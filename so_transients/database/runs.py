@@ -2,9 +2,10 @@
 detections tied to their events, and the rows split by observation.
 
 A run's folder holds ``events.ecsv``, ``lightcurves.ecsv`` and ``lightcurve_fits.ecsv``; the
-detections they were made from are the catalogue table (``detections.ecsv`` in the folder or
-next to it, as ``make demo`` writes it, or a file given), else the preprocess archive named in
-the events' provenance. Each detection's event is found again with the run's own association
+detections they were made from are the catalogue table (a file given, else ``detections.ecsv``
+in the folder, beside the archive of the preprocess config named in the events' provenance,
+where ``run`` and ``make demo`` write it, or next to the folder), else that archive itself.
+Each detection's event is found again with the run's own association
 (:func:`so_transients.events.tables.associate_detections`), and the events this gives must be
 those of ``events.ecsv``: a detections table or association settings other than the run's are
 refused, never half-matched.
@@ -25,6 +26,7 @@ from astropy.table import Table
 from so_transients.common.tables import read_table
 from so_transients.events.association import AssociationConfig
 from so_transients.events.tables import associate_detections
+from so_transients.site.pipeline import archive_index
 from so_transients.site.results import archive_table, read_catalogue, with_readable_columns
 
 log = logging.getLogger(__name__)
@@ -83,10 +85,13 @@ def find_detections(folder: Path, provenance: dict, detections=None) -> tuple:
     """``(table, where)``: the detections of the run in ``folder`` (see the module)."""
     if detections is not None:
         return _read(Path(detections), read_catalogue), str(detections)
-    for path in (folder / "detections.ecsv", folder.parent / "detections.ecsv"):
+    config = provenance.get("preprocess_config", "")
+    beside_archive = ([archive_index(config).parent / "detections.ecsv"]
+                      if config and Path(config).is_file() else [])
+    # the run's own table (where `run` writes it) before an older one next to the folder
+    for path in (folder / "detections.ecsv", *beside_archive, folder.parent / "detections.ecsv"):
         if path.is_file():
             return _read(path, read_catalogue), str(path)
-    config = provenance.get("preprocess_config", "")
     if config and Path(config).is_file():
         return archive_table(config), f"the archive of {config}"
     raise FileNotFoundError(f"{folder}: no detections.ecsv in it or next to it, and the "

@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 
@@ -59,26 +60,32 @@ def realization_row(sim, found, config, duration, noise_only):
             "unmatched": unmatched, "mislocated": mislocated(sim, found)}
 
 
-def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def study_parser(doc, out):
+    """The options both realization studies take (``out``: the default table)."""
+    p = argparse.ArgumentParser(description=doc.split("\n")[0])
     p.add_argument("--seeds", type=int, nargs="+", default=list(range(1, 21)))
     p.add_argument("--modes", nargs="+", default=["coherent", "paper"])
     p.add_argument("--minutes", type=float, default=6.0)
     p.add_argument("--noise-only", action="store_true")
     p.add_argument("--keep", type=Path, default=None, help="folder to keep the data in")
-    p.add_argument("--out", type=Path, default=Path("drawn_wafers.ecsv"))
-    args = p.parse_args(argv)
+    p.add_argument("--out", type=Path, default=Path(out))
+    return p
+
+
+def run_study(args, simulate_one, describe):
+    """Per seed of ``args``: ``simulate_one(folder, seed)`` (a result with ``context``), both
+    shipped configs on it, one row each (``describe(sim, seed)``: the realization's own
+    columns, then :func:`realization_row`'s), the table written after every realization;
+    prints it as Markdown at the end."""
     duration = args.minutes * 60
-    table = []
-    with tempfile.TemporaryDirectory(prefix="drawn_wafers_") as tmp:
+    table, out = [], None
+    with tempfile.TemporaryDirectory(prefix="wafer_study_") as tmp:
         base = args.keep or Path(tmp)
         for seed in args.seeds:
-            cfg = drawn_config(seed)
-            flares = [] if args.noise_only else flare_list(seed, duration)
-            sim = simulate_seed(base / f"seed{seed}", seed, duration, flares, cfg)
+            sim = simulate_one(base / f"seed{seed}", seed)
             for mode in args.modes:
                 found, config = run_shipped(sim, base / f"seed{seed}_runs", mode)
-                row = {"seed": seed, "config": SHIPPED[mode].name, **drawn_summary(cfg),
+                row = {"seed": seed, "config": SHIPPED[mode].name, **describe(sim, seed),
                        **realization_row(sim, found, config, duration, args.noise_only)}
                 table.append(row)
                 print(row, flush=True)
@@ -89,11 +96,22 @@ def main(argv=None):
     print_markdown(out, args.noise_only)
 
 
+def main(argv=None):
+    args = study_parser(__doc__, "drawn_wafers.ecsv").parse_args(argv)
+    duration = args.minutes * 60
+
+    def simulate_one(folder, seed):
+        flares = [] if args.noise_only else flare_list(seed, duration)
+        return simulate_seed(folder, seed, duration, flares, drawn_config(seed))
+
+    run_study(args, simulate_one, lambda sim, seed: drawn_summary(drawn_config(seed)))
+
+
 def write_table(table, args):
     """The rows so far as an ECSV table at ``args.out``."""
     names = list(dict.fromkeys(k for r in table for k in r))
     out = Table(rows=[[r.get(k, np.nan) for k in names] for r in table], names=names)
-    out.meta["comments"] = [f"studies/drawn_wafers.py, seeds {args.seeds}, modes {args.modes}",
+    out.meta["comments"] = [f"{Path(sys.argv[0]).name}, seeds {args.seeds}, modes {args.modes}",
                             f"{args.minutes:g} minutes of one f090 wafer-band per realization"]
     out.write(args.out, overwrite=True)
     return out

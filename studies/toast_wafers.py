@@ -16,55 +16,33 @@ each realization (one row per realization and config) and prints a Markdown tabl
 """
 from __future__ import annotations
 
-import argparse
 import os
-import shutil
-import tempfile
-from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 
-from so_transients.campaign.drawn_wafer import SHIPPED, drawn_config, run_shipped
+from so_transients.campaign.drawn_wafer import drawn_config
 from so_transients.sim.toast_tod import ToastSetup, simulate_toast
 
-from drawn_wafers import print_markdown, realization_row, write_table   # noqa: E402
+from drawn_wafers import run_study, study_parser   # noqa: E402
 
 IMPERFECTIONS = ("noise", "detector_yield", "calibration", "time_constants",
                  "focal_plane_errors", "jumps", "gaps", "glitches")
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--seeds", type=int, nargs="+", default=list(range(1, 21)))
-    p.add_argument("--modes", nargs="+", default=["coherent", "paper"])
-    p.add_argument("--minutes", type=float, default=6.0)
+    p = study_parser(__doc__, "toast_wafers.ecsv")
     p.add_argument("--imperfect", action="store_true",
                    help="add a drawn real wafer's imperfections")
-    p.add_argument("--noise-only", action="store_true")
-    p.add_argument("--keep", type=Path, default=None)
-    p.add_argument("--out", type=Path, default=Path("toast_wafers.ecsv"))
     args = p.parse_args(argv)
-    duration = args.minutes * 60
-    table = []
-    with tempfile.TemporaryDirectory(prefix="toast_wafers_") as tmp:
-        base = args.keep or Path(tmp)
-        for seed in args.seeds:
-            cfg = drawn_config(seed)
-            setup = ToastSetup(duration=duration, imperfections={
-                k: cfg[k] for k in IMPERFECTIONS} if args.imperfect else {})
-            sim = simulate_toast(base / f"seed{seed}", seed, setup, flares=not args.noise_only)
-            for mode in args.modes:
-                found, config = run_shipped(sim, base / f"seed{seed}_runs", mode)
-                row = {"seed": seed, "config": SHIPPED[mode].name,
-                       "imperfect": args.imperfect, "pointing_arcsec": sim.pointing_arcsec,
-                       **realization_row(sim, found, config, duration, args.noise_only)}
-                table.append(row)
-                print(row, flush=True)
-            if not args.keep:
-                for path in sorted(base.glob(f"seed{seed}*")):
-                    shutil.rmtree(path, ignore_errors=True)
-            out = write_table(table, args)
-    print_markdown(out, args.noise_only)
+
+    def simulate_one(folder, seed):
+        cfg = drawn_config(seed)
+        setup = ToastSetup(duration=args.minutes * 60, imperfections={
+            k: cfg[k] for k in IMPERFECTIONS} if args.imperfect else {})
+        return simulate_toast(folder, seed, setup, flares=not args.noise_only)
+
+    run_study(args, simulate_one, lambda sim, seed: {"imperfect": args.imperfect,
+                                                     "pointing_arcsec": sim.pointing_arcsec})
 
 
 if __name__ == "__main__":

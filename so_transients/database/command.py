@@ -25,6 +25,7 @@ from pathlib import Path
 
 import sqlalchemy as sa
 
+from so_transients.common.redact import redacted
 from so_transients.database.engine import database_url, migrate, open_database, open_engine
 from so_transients.database.ingest import ingest_run
 from so_transients.database.lightcurvedb import json_ready
@@ -184,7 +185,8 @@ def _lightcurve(args) -> int:
 
 def _migrate(args) -> int:
     done = migrate(open_engine(args.db))
-    print("\n".join(done) if done else f"{database_url(args.db)}: schema already current")
+    print("\n".join(done) if done else f"{redacted(database_url(args.db))}: schema already "
+          "current")
     return 0
 
 

@@ -29,6 +29,7 @@ import numpy as np
 from astropy import units as u
 from astropy.table import Table
 
+from so_transients.common.redact import redacted
 from so_transients.common.step_config import ConfigError
 
 log = logging.getLogger(__name__)
@@ -89,7 +90,7 @@ def database_url(spec) -> str:
     if spec.startswith("socat://"):                 # socat:///abs/path or socat://rel/path
         return "sqlite:///" + spec[len("socat://"):]
     if spec.startswith("socat:"):
-        raise ValueError(f"catalogue {spec!r}: expected `socat:` (socat's own settings) or "
+        raise ValueError(f"catalogue {redacted(spec)!r}: expected `socat:` (socat's own settings) or "
                          "`socat:///path/socat.db`")
     return spec
 
@@ -98,7 +99,7 @@ def _require_socat(spec):
     try:
         import socat  # noqa: F401
     except ImportError:
-        raise ImportError(f"catalogue {spec!r} is a socat database: install the optional "
+        raise ImportError(f"catalogue {redacted(spec)!r} is a socat database: install the optional "
                           "`socat` package (pip install so_transients[catalog])") from None
 
 
@@ -113,7 +114,7 @@ def _session_factory(spec):
     parsed = make_url(url)
     if parsed.get_backend_name() == "sqlite":
         if not parsed.database or not Path(parsed.database).is_file():
-            raise FileNotFoundError(f"catalogue {spec!r}: no socat SQLite file at "
+            raise FileNotFoundError(f"catalogue {redacted(spec)!r}: no socat SQLite file at "
                                     f"{parsed.database!r}")
     return create_sync_session_factory(db_url=url)
 
@@ -134,9 +135,9 @@ def read_socat(spec) -> Catalogue:
     sources = client.get_box(lower_left=ICRS(ra=0 * u.deg, dec=-90 * u.deg),
                              upper_right=ICRS(ra=np.nextafter(360.0, 0) * u.deg, dec=90 * u.deg))
     if not sources:
-        log.warning("catalogue %s holds no fixed source", spec)
+        log.warning("catalogue %s holds no fixed source", redacted(spec))
     return Catalogue(
-        label=str(spec),
+        label=redacted(spec),
         ra=np.array([s.position.ra.to_value(u.rad) for s in sources], float),
         dec=np.array([s.position.dec.to_value(u.rad) for s in sources], float),
         name=np.array([s.name or "" for s in sources], str),

@@ -3,6 +3,7 @@ tense, the JSON Schema every record validates against, VOEvent XML and the comma
 import argparse
 import json
 import xml.etree.ElementTree as ET
+from pathlib import Path
 
 import jsonschema
 import numpy as np
@@ -151,6 +152,24 @@ def test_voevent_packet():
     assert float(pos.find("Error2Radius").text) == pytest.approx(record["ra_dec_error"])
     assert ET.fromstring(to_voevent({**record, "alert_tense": "current"})).get("role") == \
         "observation"
+
+
+def test_every_packet_is_valid_against_the_ivoas_voevent_schema(tmp_path):
+    """New, subsequent, updated and retracted alerts, as VOEvent 2.0 XML, against the IVOA's
+    own XSD (tests/alerts/schemas/VOEvent-v2.0.xsd), not only against what we expect."""
+    xmlschema = pytest.importorskip("xmlschema")
+    xsd = xmlschema.XMLSchema(str(Path(__file__).parent / "schemas" / "VOEvent-v2.0.xsd"))
+    first = plan(events_table(), tense="injection")
+    write_alerts(first, tmp_path)
+    later = events_table(obs_ids=["obs_A,obs_B", "obs_A", "obs_A", "obs_A"],
+                         t_last=[T0 + 3000, T0 + 100, T0 + 200, T0 + 300],
+                         cat_class=["new", "catalogued", "catalogued", "new"],
+                         cat_flux_ratio=[np.nan, 1.1, 1.0, np.nan])
+    records = first + plan(later, read_alerts(tmp_path), tense="current")
+    assert {r["alert_type"] for r in records} >= {"initial", "subsequent", "retraction"}
+    for record in records:
+        errors = [str(e.reason) for e in xsd.iter_errors(to_voevent(record))]
+        assert not errors, (record["alert_type"], errors)
 
 
 def _site_config(tmp_path, simulated):

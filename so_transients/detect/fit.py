@@ -498,11 +498,11 @@ def fit_at(data: FitInputs, ra, dec, t_center, band_dets, error_scale, cfg: FitC
         return dict(n_fit_samples=0, n_fit_dets=0, fit_ok=False, error_scale=error_scale)
     live = band_dets[~data.dead[band_dets]]
     q, track, dets = fit_window(data, ra, dec, lo, hi, live, cfg)
-    arrays = window_arrays(data, track, dets, lo, hi)
-    res = fit_candidate(*arrays, data.kernel(live)[1], error_scale)
+    arrays, inflation = window_arrays(data, track, dets, lo, hi), data.kernel(live)[1]
+    res = fit_candidate(*arrays, inflation, error_scale)
     res["error_scale"] = error_scale
     if res["fit_ok"] and cfg.max_split_sigma is not None and res["snr_fit"] >= cfg.min_snr:
-        res["split_sigma"] = split_sigma(*arrays, data.kernel(live)[1], error_scale,
+        res["split_sigma"] = split_sigma(*arrays, inflation, error_scale,
                                          cfg.split_floor_arcsec * ARCSEC, cfg.split_floor_flux)
     if res["fit_ok"]:
         mid = (hi - lo) // 2

@@ -503,10 +503,10 @@ def _filter_chunk(sp, signal, mask, sigma_t, sl, out_snr):
 EXCLUDED = {0: "used", 1: "no finite, non-constant data", 2: "noise below min_noise_ratio",
             3: "noise above max_noise_ratio",
             4: "amplitude noise outside min/max_noise_ratio (its noise is not Gaussian)"}
-NO_DATA, QUIET, NOISY, INCONSISTENT = 1, 2, 3, 4
+NO_DATA, QUIET, NOISY, NON_GAUSSIAN = 1, 2, 3, 4
 #: The same codes as column names
 EXCLUDED_NAMES = {NO_DATA: "no_data", QUIET: "too_quiet", NOISY: "too_noisy",
-                  INCONSISTENT: "non_gaussian"}
+                  NON_GAUSSIAN: "non_gaussian"}
 
 
 def _ratio_to_median(level, live_groups):
@@ -525,7 +525,7 @@ def noise_outliers(noise_level, sigma_amp, dead, groups, cfg: FilterConfig):
     measures against the median of the group's live detectors: the white-band level below
     ``cfg.min_noise_ratio`` (:data:`QUIET`) or above ``cfg.max_noise_ratio`` (:data:`NOISY`)
     times it; then the spread of the filtered amplitude, ``sigma_amp``, which sets each
-    detector's weight in every fit and map, outside the same range (:data:`INCONSISTENT`).
+    detector's weight in every fit and map, outside the same range (:data:`NON_GAUSSIAN`).
     A dead channel that records only its readout's jumps and cosmic rays has a white level
     a third of a live detector's but an amplitude spread a thousand times smaller, and
     would otherwise carry nearly all of the wafer's weight. 0 for the others."""
@@ -538,7 +538,7 @@ def noise_outliers(noise_level, sigma_amp, dead, groups, cfg: FilterConfig):
     live = np.isfinite(white)
     out[live] = np.where(white[live] < cfg.min_noise_ratio, QUIET,
                          np.where(white[live] > cfg.max_noise_ratio, NOISY,
-                                  np.where(outside(amp[live]), INCONSISTENT, 0)))
+                                  np.where(outside(amp[live]), NON_GAUSSIAN, 0)))
     return out
 
 

@@ -190,8 +190,8 @@ def event_record(event, fits, tense, ident, record_number, alert_type, created,
         "flux_density_spectral_point_unit": "MHz",
         "flux_density_mjy": flux, "flux_density_error_mjy": flux_err, "band": band,
         "bands": _split(event["bands"]), "wafers": _split(event["wafers"]),
-        "obs_ids": _split(event["obs_ids"]), "so_event_id": int(event["event_id"]),
-        "so_source_id": int(event["source_id"]),
+        "obs_ids": _split(event["obs_ids"]), "so_event_id": str(event["event_uuid"]),
+        "so_source_id": str(event["source_uuid"]),
         **_spectral_index(event), **_duration(event, fits), **_crossmatch(event),
     }
     far = float(far_hz(event))

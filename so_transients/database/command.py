@@ -40,9 +40,9 @@ from so_transients.site.results import output_format
 DEFAULT_DB = "transients.db"
 
 #: Columns printed by ``query`` (every column goes to ``-o``).
-EVENT_COLUMNS = ["id", "source_id", "source_name", "t_first_utc", "ra", "dec", "peak_flux",
+EVENT_COLUMNS = ["event_uuid", "source_id", "source_name", "t_first_utc", "ra", "dec", "peak_flux",
                  "peak_flux_err", "peak_snr", "bands", "observation"]
-SOURCE_COLUMNS = ["id", "name", "ra", "dec", "pos_err", "n_events", "t_first", "t_last"]
+SOURCE_COLUMNS = ["id", "uuid", "name", "ra", "dec", "pos_err", "n_events", "t_first", "t_last"]
 POINT_COLUMNS = ["time", "bandpass", "flux", "flux_err", "snr", "upper_limit", "detected",
                  "obs_id", "wafer_slot", "scan", "run_event_id"]
 
@@ -74,12 +74,13 @@ def get_parser(parser=None):
     p.add_argument("--start", help="from this time (ctime or ISO UTC)")
     p.add_argument("--stop", help="to this time (ctime or ISO UTC)")
     p.add_argument("--min-snr", type=float, help="events with peak_snr at least this")
+    p.add_argument("--event", help="the event of this UUID (an alert's so_event_id)")
     p.add_argument("--sources", action="store_true", help="list sources instead of events")
     p.add_argument("-o", "--out", help="write every column to this table (.ecsv, .fits, .csv)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
 
     p = sub.add_parser("lightcurve", parents=[db], help="a source's light curve")
-    p.add_argument("source", help="source id (or its UUID)")
+    p.add_argument("source", help="source id, its UUID, or an alert's so_source_id")
     p.add_argument("-o", "--out", help="write it to this table (.ecsv, .fits, .csv; .json "
                                        "with --lightcurvedb)")
     p.add_argument("--lightcurvedb", action="store_true",
@@ -142,12 +143,13 @@ def _show(table, names):
 def _query(args) -> int:
     engine = open_database(args.db, create=False)
     if args.sources:
-        if args.min_snr is not None:
-            raise ValueError("--min-snr selects events: not with --sources")
+        if args.min_snr is not None or args.event is not None:
+            raise ValueError("--min-snr and --event select events: not with --sources")
         table = find_sources(engine, args.cone, args.start, args.stop)
         shown = SOURCE_COLUMNS
     else:
-        table = find_events(engine, args.cone, args.start, args.stop, args.min_snr)
+        table = find_events(engine, args.cone, args.start, args.stop, args.min_snr,
+                            args.event)
         shown = EVENT_COLUMNS
     if args.out:
         _write(table, Path(args.out), args.overwrite)

@@ -12,7 +12,8 @@ writers):
    each source spanning its events' times): an event linked to a stored source keeps that
    source's id (the oldest, when it links to several), events linked to no stored source make
    new sources;
-3. its events, detections, light-curve points and fits are inserted with their source ids;
+3. its events, detections, light-curve points and fits are inserted with their source ids
+   (an event stored before, by its ``event_uuid``, keeps its row id);
 4. the sources it touched get their position (inverse-variance weighted mean of their events,
    :func:`so_transients.events.association.weighted_position`), time span and count again; a
    source left without events is deleted.
@@ -112,9 +113,23 @@ def nearby_sources(conn, events: Table, cfg: AssociationConfig) -> list:
     return list(conn.execute(query).mappings())
 
 
+def _run_source_uuid(events: Table, i) -> str:
+    return str(events["source_uuid"][i]) if "source_uuid" in events.colnames else ""
+
+
+def _free_uuid(conn, wanted: str) -> str:
+    """``wanted`` (a run's source UUID) when no stored source has it yet, else a new one."""
+    taken = wanted and conn.execute(sa.select(schema.SOURCES.c.id).where(
+        schema.SOURCES.c.uuid == wanted)).first() is not None
+    return wanted if wanted and not taken else str(uuid.uuid4())
+
+
 def associate(conn, events: Table, cfg: AssociationConfig) -> tuple:
     """``(source ids, new ids)``: the source of each event (see the module), creating the new
-    sources (their position and span are set by :func:`refresh_sources`)."""
+    sources (their position and span are set by :func:`refresh_sources`). An event whose
+    run ``source_uuid`` the database already knows (as a source's UUID, or an earlier event's
+    ``source_uuid``) joins that source too; a new source takes its first event's
+    ``source_uuid``, so that alerts' ``so_source_id`` is the database's source UUID."""
     if not len(events):
         return np.zeros(0, int), []
     stored = nearby_sources(conn, events, cfg)
@@ -130,18 +145,35 @@ def associate(conn, events: Table, cfg: AssociationConfig) -> tuple:
     ids, new = np.zeros(len(events), int), []
     for group in np.unique(labels[n:]):
         members = np.flatnonzero(labels == group)
+        mine = members[members >= n] - n
         old = [stored[i]["id"] for i in members if i < n]
+        old += [k for k in (source_of_uuid(conn, _run_source_uuid(events, i)) for i in mine)
+                if k is not None]
         if old:
             source = min(old)
         else:
-            first = members[0] - n
+            first = mine[np.argmin(np.asarray(events["t_first"], float)[mine])]
             source = conn.execute(schema.SOURCES.insert().values(
-                uuid=str(uuid.uuid4()), name="", ra=float(events["ra"][first]),
-                dec=float(events["dec"][first]), t_first=float(events["t_first"][first]),
-                t_last=float(events["t_last"][first]), n_events=0)).inserted_primary_key[0]
+                uuid=_free_uuid(conn, _run_source_uuid(events, first)), name="",
+                ra=float(events["ra"][first]), dec=float(events["dec"][first]),
+                t_first=float(events["t_first"][first]), t_last=float(events["t_last"][first]),
+                n_events=0)).inserted_primary_key[0]
             new.append(source)
-        ids[members[members >= n] - n] = source
+        ids[mine] = source
     return ids, new
+
+
+def source_of_uuid(conn, value: str):
+    """The stored source a UUID names: a source's own UUID, or the ``source_uuid`` a run gave
+    one of its events (the ``so_source_id`` of alerts); None if none."""
+    if not value:
+        return None
+    found = conn.execute(sa.select(schema.SOURCES.c.id).where(
+        schema.SOURCES.c.uuid == value)).scalar()
+    if found is None:
+        found = conn.execute(sa.select(sa.func.min(schema.EVENTS.c.source_id)).where(
+            schema.EVENTS.c.source_uuid == value)).scalar()
+    return found
 
 
 def refresh_sources(conn, source_ids):
@@ -181,20 +213,22 @@ def _observation_row(conn, obs_id: str, run: Run) -> tuple:
     return found, True
 
 
-def _delete_owned(conn, observation_id) -> set:
-    """Delete the rows stored with an observation; returns the sources they belonged to."""
-    touched = set(conn.execute(sa.select(schema.EVENTS.c.source_id).where(
-        schema.EVENTS.c.observation_id == observation_id)).scalars())
+def _delete_owned(conn, observation_id) -> tuple:
+    """Delete the rows stored with an observation; returns ``(the sources they belonged to,
+    {event_uuid: id} of its events)``: a re-ingested event keeps its row id."""
+    ev = schema.EVENTS.c
+    stored = conn.execute(sa.select(ev.source_id, ev.event_uuid, ev.id).where(
+        ev.observation_id == observation_id)).all()
     for table in schema.OWNED:
         conn.execute(table.delete().where(table.c.observation_id == observation_id))
-    return touched
+    return {row[0] for row in stored}, {row[1]: row[2] for row in stored if row[1]}
 
 
 def ingest_observation(conn, part: ObservationRows, run: Run,
                        cfg: AssociationConfig) -> IngestResult:
     """One observation's rows, inside the caller's write transaction (see the module)."""
     observation_id, existed = _observation_row(conn, part.obs_id, run)
-    touched = _delete_owned(conn, observation_id)
+    touched, event_ids = _delete_owned(conn, observation_id)
     ids, new = associate(conn, part.events, cfg)
     known = dict(zip(np.asarray(part.events["event_id"], int).tolist(), ids.tolist()))
     source_of = lambda event_ids: [known[int(e)] for e in event_ids]
@@ -213,6 +247,10 @@ def ingest_observation(conn, part: ObservationRows, run: Run,
         (schema.LIGHTCURVE_FITS, table_rows(part.fits, schema.LIGHTCURVE_FITS, fixed,
                                             dict(source_id=source_of(part.fits["event_id"])))),
     ]
+    kept = [event_ids.get(row.get("event_uuid")) for row in inserts[0][1]]
+    inserts[0:1] = [(schema.EVENTS, [dict(row, id=k) for row, k in zip(inserts[0][1], kept)
+                                     if k is not None]),
+                    (schema.EVENTS, [row for row, k in zip(inserts[0][1], kept) if k is None])]
     for table, rows in inserts:
         if rows:
             conn.execute(table.insert(), rows)

@@ -13,7 +13,7 @@ from astropy.time import Time
 from so_transients.common.angles import DEG, sky_separation
 from so_transients.database import schema
 from so_transients.database.engine import read_connection
-from so_transients.database.ingest import box_condition
+from so_transients.database.ingest import box_condition, source_of_uuid
 from so_transients.database.lightcurvedb import to_flux_measurement
 
 
@@ -75,10 +75,11 @@ def _cone_where(sql_table, cone):
     return [box_condition(sql_table, ra % 360.0, dec, radius)]
 
 
-def find_events(engine, cone=None, start=None, stop=None, min_snr=None) -> Table:
+def find_events(engine, cone=None, start=None, stop=None, min_snr=None, event=None) -> Table:
     """Stored events, in time order: within ``cone`` = (ra, dec, radius) degrees, overlapping
     the time range [``start``, ``stop``] (ctime or ISO UTC; either may be None), with
-    ``peak_snr`` (peak_flux / peak_flux_err) at least ``min_snr``. Columns: the events
+    ``peak_snr`` (peak_flux / peak_flux_err) at least ``min_snr``, with ``event_uuid``
+    ``event`` (an alert's ``so_event_id``). Columns: the events
     file's (``run_event_id``, ``run_source_id`` for its numbering), ``id``, ``source_id``
     (persistent), ``source_name``, ``observation`` (the obs_id it was ingested with),
     ``peak_snr``."""
@@ -90,6 +91,8 @@ def find_events(engine, cone=None, start=None, stop=None, min_snr=None) -> Table
         where.append(ev.c.t_first <= parse_time(stop))
     if min_snr is not None:
         where.append(ev.c.peak_snr >= float(min_snr))
+    if event is not None:
+        where.append(ev.c.event_uuid == str(event))
     extra = [src.c.name.label("source_name"), obs.c.obs_id.label("observation")]
     with read_connection(engine) as conn:
         query_table = ev.join(src, ev.c.source_id == src.c.id).join(
@@ -132,12 +135,13 @@ def find_sources(engine, cone=None, start=None, stop=None) -> Table:
 
 
 def source_row(conn, source) -> dict:
-    """The stored source ``source`` (its id, or UUID) as a mapping."""
+    """The stored source ``source`` as a mapping: its id, its UUID, or the ``source_uuid`` a
+    run gave one of its events (an alert's ``so_source_id``)."""
     src = schema.SOURCES
     try:
         cond = src.c.id == int(source)
     except (TypeError, ValueError):
-        cond = src.c.uuid == str(source)
+        cond = src.c.id == source_of_uuid(conn, str(source))
     row = conn.execute(sa.select(src).where(cond)).mappings().first()
     if row is None:
         raise ValueError(f"source {source}: not in the database")

@@ -22,6 +22,11 @@ EVENTS = (
     Column("event_id", "int", None, _E, "event number in this run, in order of first detection"),
     Column("source_id", "int", None, _E, "events at one position within source_gap_hours share "
                                          "it (lightcurvedb's source)"),
+    Column("event_uuid", "str", None, _E, "the event's UUID, the same in every run that finds "
+                                          "it (from its first detection) and in alerts and "
+                                          "the database"),
+    Column("source_uuid", "str", None, _E, "its source's UUID (from the source's first event); "
+                                           "the database resolves it to its persistent source"),
     Column("name", "str", None, _E, "SOTR Jhhmmss.s+ddmmss: from the event's position"),
     Column("ra", "float", "deg", _E, "inverse-variance weighted RA of its detections"),
     Column("dec", "float", "deg", _E, "weighted Dec of its detections"),

@@ -9,6 +9,8 @@ nearest catalogued source. Columns: :mod:`.schema`.
 """
 from __future__ import annotations
 
+import uuid
+
 import numpy as np
 from astropy.table import Table
 
@@ -41,6 +43,29 @@ def event_name(ra_deg, dec_deg) -> str:
             f"{sign}{d:02d}{am:02d}{as10 // 10:02d}.{as10 % 10}")
 
 
+#: Namespace of the events' and sources' UUIDs (:func:`event_uuid`, :func:`source_uuid`).
+UUID_NAMESPACE = uuid.UUID("5b0c6a4e-2f0d-5d8e-9a51-53494d4f4e53")
+
+
+def event_uuid(obs_id, wafer_slot, bandpass, scan, t_peak) -> str:
+    """The UUID of an event whose first detection is this one: a name-based UUID (version 5)
+    of its observation, wafer, band, scan and peak time to 0.1 s, so that every run and every
+    re-ingest that finds that detection first gives the event the same id."""
+    key = f"event:{obs_id}:{wafer_slot}:{bandpass}:{int(scan)}:{float(t_peak):.1f}"
+    return str(uuid.uuid5(UUID_NAMESPACE, key))
+
+
+def source_uuid(first_event_uuid) -> str:
+    """The UUID of a source whose first event is ``first_event_uuid``."""
+    return str(uuid.uuid5(UUID_NAMESPACE, f"source:{first_event_uuid}"))
+
+
+def _first_detection_uuid(detections: Table, mine, t) -> str:
+    first = mine[np.argmin(t[mine])]
+    return event_uuid(detections["obs_id"][first], detections["wafer_slot"][first],
+                      detections["bandpass"][first], detections["scan"][first], t[first])
+
+
 def _joined(values) -> str:
     return ",".join(sorted({str(v) for v in values}))
 
@@ -61,7 +86,8 @@ def associate_detections(detections: Table, cfg: AssociationConfig):
         mine = np.flatnonzero(labels == k)
         e_ra, e_dec, e_sig = weighted_position(ra[mine], dec[mine], sigma[mine])
         bright = mine[np.argmax(np.asarray(detections["flux"])[mine])]
-        rows.append(dict(event_id=k, ra=np.degrees(e_ra), dec=np.degrees(e_dec),
+        rows.append(dict(event_id=k, event_uuid=_first_detection_uuid(detections, mine, t),
+                         ra=np.degrees(e_ra), dec=np.degrees(e_dec),
                          pos_err=e_sig / ARCSEC, t_first=t[mine].min(), t_last=t[mine].max(),
                          n_detections=len(mine), obs_ids=_joined(detections["obs_id"][mine]),
                          wafers=_joined(detections["wafer_slot"][mine]),
@@ -79,6 +105,10 @@ def associate_detections(detections: Table, cfg: AssociationConfig):
     cols["source_id"] = link(np.radians(cols["ra"]), np.radians(cols["dec"]), cols.pop("_sigma"),
                              np.c_[cols["t_first"], cols["t_last"]], cfg,
                              max_gap=cfg.source_gap_hours * 3600.0)
+    first_of = {}
+    for k in np.argsort(cols["t_first"], kind="stable"):
+        first_of.setdefault(int(cols["source_id"][k]), cols["event_uuid"][k])
+    cols["source_uuid"] = [source_uuid(first_of[int(s)]) for s in cols["source_id"]]
     cols["name"] = [event_name(r, d) for r, d in zip(cols["ra"], cols["dec"])]
     cols["t_first_utc"], cols["t_last_utc"] = utc(cols["t_first"]), utc(cols["t_last"])
     return typed_table(schema.EVENTS, cols), labels

@@ -21,6 +21,8 @@ from so_transients.common.candidates import typed_table
 from so_transients.events import schema
 
 T0 = 1_750_000_000.0
+#: The events' UUIDs (their sources': the same with an "f" first).
+UUIDS = [f"{k:08x}-0000-5000-8000-000000000000" for k in range(4)]
 VALIDATOR = jsonschema.Draft202012Validator(load_schema())
 
 
@@ -28,7 +30,8 @@ def events_table(**changes):
     """Four events: a new flare (both bands, fitted), a flare of a catalogued source, a
     catalogued source at its flux, and one below the S/N threshold."""
     cols = dict(
-        event_id=[0, 1, 2, 3], source_id=[0, 1, 2, 3],
+        event_id=[0, 1, 2, 3], source_id=[0, 1, 2, 3], event_uuid=UUIDS,
+        source_uuid=["f" + u[1:] for u in UUIDS],
         name=["SOTR J000000.0+000000.0", "SOTR J010000.0-100000.0", "SOTR J020000.0-200000.0",
               "SOTR J030000.0-300000.0"],
         ra=[10.0, 15.0, 30.0, 45.0], dec=[-5.0, -10.0, -20.0, -30.0], pos_err=[3.0] * 4,
@@ -58,7 +61,8 @@ def plan(events, history=None, covered=("obs_A",), tense="test", cfg=None):
 
 def test_initial_alerts_of_the_transients_above_threshold():
     records = plan(events_table())
-    assert [r["so_event_id"] for r in records] == [0, 1]      # catalogued and faint: none
+    assert [r["so_event_id"] for r in records] == UUIDS[:2]   # catalogued and faint: none
+    assert [r["so_source_id"] for r in records] == ["f" + u[1:] for u in UUIDS[:2]]
     new, flare = records
     for r in records:
         VALIDATOR.validate(r)
@@ -92,7 +96,7 @@ def test_followups_and_retractions(tmp_path):
                          cat_class=["new", "catalogued", "catalogued", "new"],
                          cat_flux_ratio=[np.nan, 1.1, 1.0, np.nan])
     records = {r["so_event_id"] if "so_event_id" in r else r["id"]: r for r in plan(later, history)}
-    seen = records[0]
+    seen = records[UUIDS[0]]
     assert seen["alert_type"] == "subsequent" and seen["record_number"] == 2
     assert seen["update_message"] == "seen again in obs_B"
     assert seen["id"] == history[seen["id"]][0]["id"]
@@ -121,7 +125,7 @@ def test_an_event_gone_is_retracted_only_when_its_observations_were_reanalysed(t
 
 
 def test_far_and_snr_thresholds():
-    assert [r["so_event_id"] for r in plan(events_table(), cfg=AlertsConfig(min_snr=10))] == [0]
+    assert [r["so_event_id"] for r in plan(events_table(), cfg=AlertsConfig(min_snr=10))] == UUIDS[:1]
     strict = AlertsConfig(max_far_hz=1e-4)              # event 0 has far 1e-3 Hz, 1 none
     assert plan(events_table(), cfg=strict) == []
     assert len(plan(events_table(), cfg=AlertsConfig(max_far_hz=1e-2))) == 1

@@ -2,11 +2,14 @@
 pipeline, ``so-transients catalog`` and ``so-transients events``, then ingest the output on
 SQLite and PostgreSQL."""
 import shutil
+import uuid
 
 import numpy as np
 import pytest
 from astropy.table import Table
 
+from so_transients.alerts.command import run_alerts
+from so_transients.alerts.records import AlertsConfig
 from so_transients.cli import main as cli_main
 from so_transients.database.command import get_parser, main
 from so_transients.database.engine import open_database
@@ -56,6 +59,9 @@ def as_another_observation(root, dest, dt, suffix):
         for col in ("obs_id", "obs_ids"):
             if col in table.colnames:
                 table[col] = [f"{v}{suffix}" for v in table[col]]
+        for col in ("event_uuid", "source_uuid"):      # another observation: other events
+            if col in table.colnames:
+                table[col] = [str(uuid.uuid5(uuid.UUID(v), suffix)) for v in table[col]]
         for ctime, iso in columns.items():
             table[ctime] += dt
             if iso:
@@ -102,3 +108,29 @@ def test_a_run_ingested_from_its_archive(real_run, new_db, tmp_path):
     assert db("ingest", "--db", url, alone) == 0
     events = Table.read(alone / "events.ecsv")
     assert counts(open_database(url, create=False))["detections"] == np.sum(events["n_detections"])
+
+
+def test_alert_ids_name_the_database_rows_and_survive_a_reingest(real_run, new_db, tmp_path):
+    """An alert's so_event_id finds its event in the database and its so_source_id the
+    source whose light curve holds it; ingesting the run again keeps every id (row ids and
+    UUIDs) on both back ends."""
+    url = new_db()
+    alerts = run_alerts(real_run / "events", tmp_path / "alerts", AlertsConfig())
+    assert alerts, "the bright flare is alerted"
+    assert db("ingest", "--db", url, real_run / "events") == 0
+
+    def ids():
+        engine = open_database(url, create=False)
+        found = {}
+        for alert in alerts:
+            (event,) = find_events(engine, event=alert["so_event_id"])
+            curve = lightcurve(engine, alert["so_source_id"])
+            assert curve.meta["source"]["id"] == event["source_id"]
+            assert curve.meta["source"]["uuid"] == alert["so_source_id"]
+            assert event["run_event_id"] in set(curve["run_event_id"])
+            found[alert["id"]] = (int(event["id"]), int(event["source_id"]))
+        return found, sorted(find_events(engine)["id"]), sorted(find_sources(engine)["uuid"])
+
+    first = ids()
+    assert db("ingest", "--db", url, real_run / "events") == 0
+    assert ids() == first

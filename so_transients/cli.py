@@ -58,12 +58,15 @@ def _simulate_list():
 
 def _run_simulation(args):
     """Simulate the dataset of ``args`` and return the simulation result."""
+    from so_transients.database.queries import parse_time
     from so_transients.sim.config import load_config
     from so_transients.sim.simulate import simulate
 
+    start = getattr(args, "start", None)
     config = load_config(args.config, {
         "seed": args.seed, "output": args.out,
-        "observation": {"duration": getattr(args, "duration", None)},
+        "observation": {"duration": getattr(args, "duration", None),
+                        "start": None if start is None else parse_time(start)},
         "instrument": {"tubes": getattr(args, "tubes", None),
                        "wafers": getattr(args, "wafers", None),
                        "bands": getattr(args, "bands", None)}})
@@ -324,6 +327,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--out", help="output folder (default: the config's `output`)")
     p.add_argument("--seed", type=int, help="override the config's seed")
     p.add_argument("--duration", type=float, help="seconds per observation")
+    p.add_argument("--start", help="first observation's start, ctime or ISO UTC (it names the "
+                                   "obs_id; default: the config's)")
     p.add_argument("--tubes", nargs="+", metavar="TUBE", help="LAT tube slots (see --list)")
     p.add_argument("--wafers", nargs="+", metavar="WAFER",
                    help="wafer slots of those tubes (default: the config's)")

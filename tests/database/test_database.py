@@ -379,3 +379,29 @@ def test_a_run_whose_detections_do_not_give_its_events_is_refused(new_db, tmp_pa
     with pytest.raises(ValueError):
         db("ingest", "--db", url, "--detections", other / "detections.ecsv", folder)
     assert not Path(url).exists() or stored(url)["observations"] == 0
+
+
+def test_a_killed_test_session_leaves_no_postgres_server(tmp_path):
+    """The process that started the server is killed (SIGKILL: no clean-up of its own): the
+    watchdog stops the server and removes its folder."""
+    script = ("from so_transients.database.server import temporary_postgres\n"
+              "import sys, time\n"
+              "with temporary_postgres() as url:\n"
+              "    print(url, flush=True)\n"
+              "    time.sleep(600)\n")
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    url = proc.stdout.readline().strip()
+    engine = sa.create_engine(url)
+    with engine.connect() as conn:
+        folder = Path(conn.exec_driver_sql("SHOW data_directory").scalar()).parent
+    engine.dispose()
+    assert folder.is_dir()
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    deadline = time.time() + 60
+    while folder.exists() and time.time() < deadline:
+        time.sleep(0.5)
+    assert not folder.exists()
+    with pytest.raises(sa.exc.OperationalError):
+        with sa.create_engine(url).connect():
+            pass

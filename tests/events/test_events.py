@@ -247,3 +247,16 @@ def test_event_names_truncate_as_the_iau_asks():
     ra = (18 + 30 / 60 + 22.56 / 3600) * 15
     dec = -(48 + 11 / 60 + 0.39 / 3600)
     assert event_name(ra, dec) == "SOTR J183022.5-481100.3"
+
+
+def test_the_light_curve_axis_of_a_single_crossing_is_readable():
+    """One crossing (or two 0.1 s apart) gets a time axis a minute wide around it; a long
+    light curve keeps every point inside its axis."""
+    from so_transients.events.figures import MIN_HALF_SPAN_S, time_limits
+
+    for t in ([0.0], [0.0, 0.1], []):
+        lo, hi = time_limits(t)
+        assert hi - lo == pytest.approx(2 * MIN_HALF_SPAN_S)
+        assert all(lo < v < hi for v in t)
+    lo, hi = time_limits([-600.0, 0.0, 1200.0])
+    assert lo < -600.0 and hi > 1200.0 and hi - lo == pytest.approx(1.1 * 1800.0)

@@ -112,3 +112,22 @@ def test_study_commands_sit_apart_from_the_user_commands(capsys):
     assert done.value.code == 0
     out = capsys.readouterr().out
     assert "campaign" in out and "events-check" in out and "combine" in out
+
+
+def test_simulate_start_names_the_observation(tmp_path):
+    """``--start`` (ISO UTC or ctime) sets the first observation's start and so its obs_id: a
+    second simulated dataset does not reuse the first one's."""
+    from astropy.time import Time
+
+    from so_transients.sim.dataset import obs_id_for
+
+    args = ["simulate", "--duration", "10", "--tubes", "i1", "--wafers", "w16", "--bands",
+            "f090", "-q"]
+    assert cli.main([*args, "-o", str(tmp_path / "a"), "--start", "2024-03-01T00:00:00"]) == 0
+    assert cli.main([*args, "-o", str(tmp_path / "b"), "--start", "1709251200"]) == 0
+    start = Time("2024-03-01T00:00:00", scale="utc").unix
+    assert start == 1709251200
+    expected = obs_id_for(start, "i1")
+    for name in ("a", "b"):
+        assert [p.name for p in (tmp_path / name / "tod").iterdir()] == [expected]
+    assert expected != obs_id_for(load_config(None).observation.start, "i1")

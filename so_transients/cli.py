@@ -310,8 +310,20 @@ def _common_options(default):
     return common
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _command_named(argv) -> str:
+    """The subcommand ``argv`` names: its first word that is not an option (the top-level
+    options take no value); '' when none."""
+    return next((a for a in argv if not a.startswith("-")), "")
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The command line's parser; ``command``: build only that subcommand's own options among
+    those whose module is slow to import (``events``, ``db``, ``alerts``: the others are
+    listed with their help), so that ``--help`` and the other commands start at once."""
     from so_transients import __version__
+
+    def full(name):
+        return command is None or command == name
 
     parser = argparse.ArgumentParser(prog="so-transients", description=__doc__.splitlines()[0],
                                      parents=[_common_options(False)])
@@ -404,20 +416,23 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("events", "detections joined into events, with forced-photometry light curves, "
                       "light-curve fits, spectral indices and figures; exit 1 when a group "
                       "failed")
-    from so_transients.events.command import get_parser as events_parser
-    events_parser(p)
+    if full("events"):
+        from so_transients.events.command import get_parser as events_parser
+        events_parser(p)
     p.set_defaults(func=_events)
 
     p = add("db", "the events database across observations (SQLite or PostgreSQL): ingest "
                   "an events folder, query events, a source's light curve")
-    from so_transients.database.command import get_parser as db_parser
-    db_parser(p)
+    if full("db"):
+        from so_transients.database.command import get_parser as db_parser
+        db_parser(p)
     p.set_defaults(func=_db)
 
     p = add("alerts", "alert records of an events folder: GCN unified-schema JSON (and "
                       "optionally VOEvent 2.0 XML), validated against the package's schema")
-    from so_transients.alerts.command import get_parser as alerts_parser
-    alerts_parser(p)
+    if full("alerts"):
+        from so_transients.alerts.command import get_parser as alerts_parser
+        alerts_parser(p)
     p.set_defaults(func=_alerts)
 
     p = add("schema", "the candidate columns (name, step, unit, meaning)")
@@ -484,7 +499,8 @@ def main(argv=None) -> int:
     """Exit status: 0 done, 1 done with failures (a group of ``run``, ``catalog`` or
     ``events`` failed, without ``--partial``), 2 refused (one line on stderr naming the file
     and what is wrong)."""
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
+    args = build_parser(_command_named(argv)).parse_args(argv)
     configure_logging(args.verbose)
     try:
         return args.func(args) or 0

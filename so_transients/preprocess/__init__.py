@@ -11,4 +11,8 @@
 - :mod:`.plots`: one figure per detection
 
 The only subpackage that knows sotodlib's ``_Preprocess``; nothing below it imports it.
+Importing the subpackage registers every step with sotodlib's ``Pipeline`` (the package does
+so as soon as ``sotodlib.preprocess`` is imported).
 """
+from so_transients.preprocess import processes  # noqa: F401  the transient_* steps
+from so_transients.preprocess import sotodlib_steps  # noqa: F401  the chunked standard ones

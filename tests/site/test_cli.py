@@ -131,3 +131,27 @@ def test_simulate_start_names_the_observation(tmp_path):
     for name in ("a", "b"):
         assert [p.name for p in (tmp_path / name / "tod").iterdir()] == [expected]
     assert expected != obs_id_for(load_config(None).observation.start, "i1")
+
+
+def test_help_does_not_import_the_pipeline_and_steps_register_when_it_is(tmp_path):
+    """``so-transients --help`` (and ``import so_transients``) leave sotodlib's preprocess
+    module unimported; importing it afterwards registers every step, as does importing
+    sotodlib's preprocess first."""
+    import ast
+    import subprocess
+    import sys
+
+    help_only = ("import sys\nfrom so_transients import cli\n"
+                 "try:\n    cli.main(['--help'])\nexcept SystemExit:\n    pass\n"
+                 "print('IMPORTED', 'sotodlib.preprocess' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", help_only], capture_output=True, text=True,
+                         check=True).stdout
+    assert "IMPORTED False" in out
+    steps = ("from sotodlib.preprocess import Pipeline\n"
+             "print('STEPS', sorted(k for k in Pipeline.PIPELINE if k.startswith('transient_')))\n")
+    for first in ("import so_transients\n", "import sotodlib.preprocess, so_transients\n"):
+        out = subprocess.run([sys.executable, "-c", first + steps], capture_output=True,
+                             text=True, check=True).stdout
+        registered = ast.literal_eval(out.split("STEPS", 1)[1].strip())
+        assert {"transient_filter", "transient_find", "transient_fit", "transient_jumps",
+                "transient_pca_filter"} <= set(registered), first

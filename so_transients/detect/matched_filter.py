@@ -42,8 +42,10 @@ down by its share of the power in the frequencies the filter uses: about S/N^2 /
 n_eff the effective number of such frequencies (~13 Hz x duration at f090), so 1.3 % for S/N 10
 in a 10-minute TOD but far more for very bright sources or short TODs. Detectors where this
 estimate exceeds ``bright_bias`` are filtered a second time, with their PSD re-estimated after
-the bright samples are interpolated over; this costs two more FFTs for those detectors only
-(the data's spectrum is kept from the first pass and weighted again). Each thread filters its
+the bright samples are interpolated over, and their S/N scale measured on the same data
+without the source, whose filtered response, seconds wide, would otherwise widen it; this
+costs three more FFTs for those detectors only (the data's spectrum is kept from the first pass
+and weighted again). Each thread filters its
 chunks in buffers it reuses (:meth:`_Spectral.workspace`): the only fresh memory is the S/N.
 """
 from __future__ import annotations
@@ -411,13 +413,17 @@ def _prepare(sp, signal_rows, mask_rows, buffer):
     return buffer, bad
 
 
-def _filter_rows(sp, spec, noise, bad_rows, sigma_t, out_snr, rows, weighted, y):
+def _filter_rows(sp, spec, noise, bad_rows, sigma_t, out_snr, rows, weighted, y,
+                 source_free=None):
     """Filter the spectra ``spec`` (:meth:`_Spectral.spectrum`) with the noise model ``noise``
     (binned PSD, white level) into ``out_snr[rows]`` (S/N); returns per-row results and peak
     |S/N|. ``weighted``, ``y``: buffers for the weighted spectra (``spec`` itself when it
     is not needed again) and the filtered rows.
 
     ``bad_rows``: {row: grown bad-sample mask} of rows with samples that must not be detected.
+    ``source_free``: ``(spectra, buffer)``: the same rows with their bright source
+    interpolated over, and a buffer for them filtered; the S/N scale is measured on those
+    (a bright source's response, seconds wide, would otherwise widen its row's measured noise).
     """
     psd, white = noise
     dead = white <= 0
@@ -426,7 +432,12 @@ def _filter_rows(sp, spec, noise, bad_rows, sigma_t, out_snr, rows, weighted, y)
     psd = np.where(dead[:, None], 1.0, psd)
     y, norm, var_y, fknee, n_eff = sp.apply(spec, psd, np.where(dead, 1.0, white), sigma_t,
                                             weighted, y)
-    measured = sp.robust_sigma(y, bad_rows)
+    if source_free is None:
+        measured = sp.robust_sigma(y, bad_rows)
+    else:
+        free_spec, free_y = source_free
+        measured = sp.robust_sigma(sp.apply(free_spec, psd, np.where(dead, 1.0, white), sigma_t,
+                                            free_spec, free_y)[0], bad_rows)
     sigma_y = np.sqrt(var_y)
     ok = np.isfinite(measured) & (measured > 0)
     scale = np.where(ok, measured / sigma_y, 1.0)
@@ -441,8 +452,8 @@ def _filter_rows(sp, spec, noise, bad_rows, sigma_t, out_snr, rows, weighted, y)
 
 
 def _source_masked_psd(sp, x, snr, sigma_t, spec):
-    """Binned PSD of rows ``x`` (a copy: overwritten; ``spec`` a buffer for its spectrum)
-    with samples above ``source_mask_snr``
+    """Binned PSD of rows ``x`` (a copy: overwritten; ``spec`` a buffer for its spectrum, left
+    holding it) with samples above ``source_mask_snr``
     (and 2 sigma_t around them) interpolated over: the noise without the source. Interpolated
     samples carry no white noise, so the PSD is scaled up by the masked fraction (a constant
     factor per row changes neither the S/N nor the amplitude, only the white level)."""
@@ -487,7 +498,8 @@ def _filter_chunk(sp, signal, mask, sigma_t, sl, out_snr):
         sub_bad = {j: bad_rows[i] for j, i in enumerate(bright) if i in bad_rows}
         rows_spec = np.take(spec, bright, axis=0, out=ws["spec2"][:n])
         again, _ = _filter_rows(sp, rows_spec, noise, sub_bad, row_sigma_t, snr, bright,
-                                rows_spec, ws["y"][:n])
+                                rows_spec, ws["y"][:n],
+                                source_free=(ws["weighted"][:n], ws["x2"][:n]))
         for key, value in again.items():
             res[key][bright] = value
     dead = res["dead"]

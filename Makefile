@@ -24,8 +24,10 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/so-transients demo --config configs/sim_demo.yaml --out data/demo
 
+# One worker per core, each running whole test modules (their module-scoped datasets are
+# simulated once); `pytest` alone runs them one at a time.
 test: $(STAMP)
-	$(PY) -m pytest
+	$(PY) -m pytest -n auto --dist loadfile
 
 # The quick subset for development: everything but the end-to-end tests marked `slow`.
 test-fast: $(STAMP)

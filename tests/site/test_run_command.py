@@ -77,6 +77,23 @@ def test_results_never_outlive_the_config_that_made_them(config, capsys):
     assert cli.main(["run", str(config), "--overwrite"]) == 0
 
 
+def test_a_known_source_list_without_sources_is_named_by_run(config, tmp_path, capsys, caplog):
+    """A header-only known-source list: ``run`` says, before anything runs, that nothing will
+    be masked (here it is then refused: the archive holds groups made with other steps)."""
+    test_a_good_run_exits_0_with_the_catalogue_in_time_order(config, capsys)  # the archive
+    header = tmp_path / "known.csv"
+    header.write_text("ra,dec\n")
+    cfg = read_config(config)
+    for step in cfg["process_pipe"]:
+        if step["name"] == "transient_cuts":
+            step.setdefault("calc", {})["known_sources"] = str(header)
+    edited = tmp_path / "known.yaml"
+    edited.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    with caplog.at_level("WARNING"):
+        assert cli.main(["run", str(edited)]) == 2
+    assert f"{header}" in caplog.text and "lists no source" in caplog.text
+
+
 def processes_running(text):
     """PIDs of the processes whose command line contains ``text``."""
     out = []

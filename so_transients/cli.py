@@ -39,7 +39,7 @@ from pathlib import Path
 from so_transients.site.selection import ObsSelection, add_selection_arguments
 
 log = logging.getLogger("so_transients.cli")
-DEMO_CONFIG = Path(__file__).resolve().parent.parent / "configs" / "sim_demo.yaml"
+DEMO_CONFIG = Path(__file__).resolve().parent / "configs" / "sim_demo.yaml"
 
 
 def _simulate(args):

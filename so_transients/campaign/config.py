@@ -25,7 +25,7 @@ from so_transients.detect.find import FindConfig
 from so_transients.sim.config import SimConfig
 from so_transients.sim.sources import PLACEMENTS
 from so_transients.significance.far import SignificanceConfig
-from so_transients.site.pipeline import CONFIGS, PAPER, apply_overrides
+from so_transients.site.pipeline import PAPER, REPOSITORY, apply_overrides
 from so_transients.common.step_config import from_yaml
 from so_transients.campaign.search_steps import split_pipe, step_settings, with_coherent_snr
 
@@ -241,7 +241,7 @@ def load_campaign(path, overrides: dict | None = None) -> CampaignConfig:
                 raise ValueError(f"unknown keys in campaign section {name!r}: {sorted(bad)}")
             data[name] = klass(**section)
     if "preprocess" in data and not Path(data["preprocess"]).exists():
-        candidate = CONFIGS.parent / data["preprocess"]
+        candidate = REPOSITORY / data["preprocess"]
         if candidate.exists():
             data["preprocess"] = str(candidate)
     return CampaignConfig(**data)

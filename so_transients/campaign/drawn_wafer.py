@@ -23,12 +23,13 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from so_transients.campaign.real_wafer import CONFIG, ROOT, read_detections
-from so_transients.site.pipeline import failed_groups, run_site_pipeline, write_site_config
+from so_transients.campaign.real_wafer import CONFIG, read_detections
+from so_transients.site.pipeline import (
+    PAPER, PRODUCTION, failed_groups, run_site_pipeline, write_site_config
+)
 
 #: The shipped site configs, by search mode
-SHIPPED = {"coherent": ROOT / "configs" / "preprocess_production.yaml",
-           "paper": ROOT / "configs" / "preprocess_paper.yaml"}
+SHIPPED = {"coherent": PRODUCTION, "paper": PAPER}
 
 
 def drawn_config(seed) -> dict:

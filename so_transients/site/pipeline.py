@@ -24,8 +24,10 @@ from pathlib import Path
 
 import yaml
 
-#: the repository's configs folder
-CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+#: the shipped configs (package data; the repository's ``configs`` links to them)
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+#: a checkout's top folder (studies and their configs live there, not in the package)
+REPOSITORY = Path(__file__).resolve().parents[2]
 #: the production site config: coherent search with calibrated false-alarm rates
 PRODUCTION = CONFIGS / "preprocess_production.yaml"
 #: the reference paper's method (Clancy et al. 2025)

@@ -43,8 +43,9 @@ def test_another_scan_pattern_finds_the_flare_where_it_is_with_its_flux(tmp_path
     """A 3 Jy flare (t_rise 5 s, crossed at its peak) in 4 minutes of w16 at f090 with
     glitches: it is detected within a second of its peak, ranked above every other
     candidate (larger Z, smaller far), at its position (within 5 fit errors and 0.5') and
-    with its flux (within 5 fit errors and 10 %: a matched filter or map built for the
-    wrong speed loses a large fraction of the amplitude)."""
+    with its flux (within 10 %, or 5 fit errors: a matched filter or map built for the
+    wrong speed loses a large fraction of the amplitude; the shipped pca_filter takes a few
+    per cent of a bright flare, 7 % here, more than 5 fit errors)."""
     sim = simulate(tmp_path, pattern, FLARE)
     cands, aman = search(sim)
     truth = sim.flares
@@ -59,8 +60,8 @@ def test_another_scan_pattern_finds_the_flare_where_it_is_with_its_flux(tmp_path
 
     d_ra = (cands["ra"][k] - truth["ra"][0]) * np.cos(truth["dec"][0])
     d_dec = cands["dec"][k] - truth["dec"][0]
-    assert abs(d_ra) < max(5 * cands["ra_err"][k], 0.5 * ARCMIN)
-    assert abs(d_dec) < max(5 * cands["dec_err"][k], 0.5 * ARCMIN)
+    assert abs(d_ra) < min(5 * cands["ra_err"][k], 0.5 * ARCMIN)
+    assert abs(d_dec) < min(5 * cands["dec_err"][k], 0.5 * ARCMIN)
     flux = FLARE["s_peak_mjy"]
     assert abs(cands["flux"][k] - flux) < max(5 * cands["flux_err"][k], 0.1 * flux)
 

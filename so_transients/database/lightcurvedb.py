@@ -2,14 +2,16 @@
 ``lightcurvedb/models/flux.py``): ``measurement_id`` (UUID), ``frequency`` (int, GHz),
 ``module`` (the optics tube, e.g. ``i1``), ``source_id`` (UUID), ``time`` (datetime, UTC),
 ``ra``, ``dec`` (degrees, RA in [-180, 180) as lightcurvedb stores it), ``ra_uncertainty``,
-``dec_uncertainty`` (degrees, None when unknown), ``flux``, ``flux_err`` (mJy) and ``extra``
-(``{"flags": [...]}``).
+``dec_uncertainty`` (degrees, None when unknown), ``flux``, ``flux_err`` (**Jy**, as sotrplib
+writes them and lightserve and lightview show them; the package's tables are in mJy) and
+``extra`` (``{"flags": [...]}``).
 
-What lightcurvedb has no field for travels in the flags: ``detected`` (a detection of the
-event is at this crossing), ``upper_limit`` (the point is an upper limit), and
-``obs_id=...``, ``wafer_slot=...``, ``scan=...``, so that a point read back still names the
-observation, wafer and scan it was measured in. ``measurement_id`` is a UUID derived from the
-source and those keys: the same point ingested again gets the same id.
+``extra.flags`` are quality flags: lightview hides a flagged point. The points carry none (a
+measurement that failed is not a light-curve point); what lightcurvedb has no field for (the
+observation, wafer and scan, whether the event was detected at that crossing, the upper
+limit) stays in the database's ``lightcurve_points``. ``measurement_id`` is a UUID derived
+from the source, observation, wafer, band, scan and time: the same point ingested again gets
+the same id.
 """
 from __future__ import annotations
 
@@ -27,8 +29,8 @@ FIELDS = ("measurement_id", "frequency", "module", "source_id", "time", "ra", "d
 #: Namespace of the measurement ids.
 NAMESPACE = uuid.uuid5(uuid.NAMESPACE_URL, "so_transients/lightcurve_points")
 
-#: Light-curve columns carried in the flags as ``key=value``, with their type.
-KEYED_FLAGS = {"obs_id": str, "wafer_slot": str, "scan": int}
+#: mJy (the package's flux unit) per Jy (lightcurvedb's)
+MJY_PER_JY = 1000.0
 
 
 def _optional(value):
@@ -46,9 +48,6 @@ def to_flux_measurement(point, source_uuid) -> dict:
     """The FluxMeasurement fields (a dict, ready for ``FluxMeasurement(**...)``) of one
     light-curve point (a mapping with the ``lightcurves`` table's columns) of the source whose
     UUID is ``source_uuid``."""
-    flags = (["detected"] if bool(point["detected"]) else []) \
-        + (["upper_limit"] if np.isfinite(float(point["upper_limit"])) else []) \
-        + [f"{k}={point[k]}" for k in KEYED_FLAGS]
     ra = float(point["ra"])
     return dict(
         measurement_id=measurement_id(source_uuid, point),
@@ -60,21 +59,19 @@ def to_flux_measurement(point, source_uuid) -> dict:
         dec=float(point["dec"]),
         ra_uncertainty=_optional(point["ra_uncertainty"]),
         dec_uncertainty=_optional(point["dec_uncertainty"]),
-        flux=float(point["flux"]),
-        flux_err=float(point["flux_err"]),
-        extra={"flags": flags},
+        flux=float(point["flux"]) / MJY_PER_JY,
+        flux_err=float(point["flux_err"]) / MJY_PER_JY,
+        extra={"flags": []},
     )
 
 
 def from_flux_measurement(measurement) -> dict:
     """The light-curve point of a FluxMeasurement (a mapping of its fields, or the model
     itself): the ``lightcurves`` columns lightcurvedb carries (``time`` as ISO UTC, ``ctime``,
-    ``ra`` in [0, 360), ``dec``, uncertainties (NaN when unknown), ``flux``, ``flux_err``,
-    ``frequency``, ``module``, ``bandpass``, ``snr``, ``detected``, and ``obs_id``,
-    ``wafer_slot``, ``scan`` from the flags), with ``source_uuid`` and ``measurement_id``."""
+    ``ra`` in [0, 360), ``dec``, uncertainties (NaN when unknown), ``flux``, ``flux_err`` (mJy),
+    ``frequency``, ``module``, ``bandpass``, ``snr``), with ``source_uuid`` and
+    ``measurement_id``."""
     m = measurement if isinstance(measurement, dict) else dict(measurement)
-    extra = m.get("extra") or {}
-    flags = extra.get("flags", []) if isinstance(extra, dict) else list(extra.flags)
     time = m["time"]
     if isinstance(time, str):
         time = datetime.fromisoformat(time)
@@ -86,15 +83,11 @@ def from_flux_measurement(measurement) -> dict:
         time=str(utc(time.timestamp())[0]), ctime=time.timestamp(),
         ra=float(m["ra"]) % 360.0, dec=float(m["dec"]),
         ra_uncertainty=nan(m["ra_uncertainty"]), dec_uncertainty=nan(m["dec_uncertainty"]),
-        flux=float(m["flux"]), flux_err=float(m["flux_err"]),
+        flux=float(m["flux"]) * MJY_PER_JY, flux_err=float(m["flux_err"]) * MJY_PER_JY,
         frequency=int(m["frequency"]), module=str(m["module"]),
-        bandpass=f"f{int(m['frequency']):03d}", detected="detected" in flags,
+        bandpass=f"f{int(m['frequency']):03d}",
     )
     point["snr"] = point["flux"] / point["flux_err"] if point["flux_err"] else np.nan
-    for flag in flags:
-        key, sep, value = flag.partition("=")
-        if sep and key in KEYED_FLAGS:
-            point[key] = KEYED_FLAGS[key](value)
     return point
 
 

@@ -156,7 +156,7 @@ def _duration(event, fits: Table | None) -> dict:
 
 def _crossmatch(event) -> dict:
     cls = str(event["cat_class"]) if "cat_class" in event.colnames else ""
-    out = dict(classification=cls)
+    out = dict(crossmatch_class=cls)
     if cls == "catalogued_flare":
         out.update(catalogue=str(event["catalogue"]), known_source=str(event["cat_source_name"]),
                    known_source_id=int(event["cat_source_id"]),
@@ -188,7 +188,7 @@ def event_record(event, fits, tense, ident, record_number, alert_type, created,
         "flux_density_unit": "erg/cm2/s/Hz",
         "flux_density_spectral_point": CENTER_GHZ[band] * 1e3,
         "flux_density_spectral_point_unit": "MHz",
-        "flux_density_mjy": flux, "flux_density_error_mjy": flux_err, "band": band,
+        "flux_density_mjy": flux, "flux_density_error_mjy": flux_err, "peak_band": band,
         "bands": _split(event["bands"]), "wafers": _split(event["wafers"]),
         "obs_ids": _split(event["obs_ids"]), "so_event_id": str(event["event_uuid"]),
         "so_source_id": str(event["source_uuid"]),

@@ -24,13 +24,13 @@ PARAMS = {
     "flux_density_mjy": ("mJy", "phot.flux.density"),
     "flux_density_error_mjy": ("mJy", "stat.error;phot.flux.density"),
     "flux_density": ("erg/cm2/s/Hz", "phot.flux.density"),
-    "flux_density_spectral_point": ("MHz", "em.freq"), "band": (None, "instr.bandpass"),
+    "flux_density_spectral_point": ("MHz", "em.freq"), "peak_band": (None, "instr.bandpass"),
     "spectral_index": (None, "spect.index"), "spectral_index_error": (None, "stat.error"),
     "spectral_index_bands": (None, None), "duration": ("s", "time.duration"),
     "duration_error": ("s", "stat.error;time.duration"),
     "detection_span": ("s", "time.interval"), "last_detection_time": (None, "time.end"),
     "obs_ids": (None, "obs.id"), "wafers": (None, "instr.det"), "bands": (None, None),
-    "classification": (None, "src.class"), "known_source": (None, "meta.id.cross"),
+    "crossmatch_class": (None, "src.class"), "known_source": (None, "meta.id.cross"),
     "known_source_separation": ("arcmin", "pos.angDistance"), "flux_ratio": (None, None),
     "update_message": (None, "meta.note"),
 }
@@ -67,7 +67,7 @@ def to_voevent(record: dict) -> str:
         inference = ET.SubElement(why, "Inference")
         ET.SubElement(inference, "Name").text = record.get("known_source", record["event_name"])
         ET.SubElement(inference, "Concept").text = \
-            f"millimetre transient: {record['classification'] or 'not cross-matched'}"
+            f"millimetre transient: {record['crossmatch_class'] or 'not cross-matched'}"
     if record.get("supersedes"):
         citations = ET.SubElement(root, "Citations")
         previous = dict(id=record["id"], record_number=record["record_number"] - 1)

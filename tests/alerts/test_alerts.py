@@ -80,7 +80,7 @@ def test_initial_alerts_of_the_transients_above_threshold():
     assert new["trigger_time"].endswith("Z") and new["detection_span"] == 60.0
     assert new["obs_ids"] == ["obs_A"] and new["wafers"] == ["w16", "w17"]
     assert flare["snr"] == 8.0 and "far" not in flare and "spectral_index" not in flare
-    assert flare["classification"] == "catalogued_flare" and flare["known_source"] == "QSO A"
+    assert flare["crossmatch_class"] == "catalogued_flare" and flare["known_source"] == "QSO A"
     assert flare["flux_ratio"] == 8.0
 
 
@@ -173,6 +173,46 @@ def test_every_packet_is_valid_against_the_ivoas_voevent_schema(tmp_path):
     assert {r["alert_type"] for r in records} >= {"initial", "subsequent", "retraction"}
     for record in records:
         errors = [str(e.reason) for e in xsd.iter_errors(to_voevent(record))]
+        assert not errors, (record["alert_type"], errors)
+
+
+#: The core blocks a mission schema of GCN composes (gcn/notices/<mission>/*.schema.json)
+GCN_CORE = ("Alert", "Reporter", "Event", "DateTime", "Localization", "Statistics", "Duration",
+            "Spectral")
+
+
+def gcn_validator():
+    """A validator of the GCN core blocks, composed as a mission schema composes them (``allOf``
+    of their ``$ref``s), from nasa-gcn/gcn-schema's own files (tests/alerts/schemas/gcn)."""
+    from referencing import Registry, Resource
+
+    root = Path(__file__).parent / "schemas" / "gcn" / "notices" / "core"
+    resources = []
+    for path in sorted(root.rglob("*.schema.json")):
+        schema = json.loads(path.read_text())
+        resources.append((schema["$id"], Resource.from_contents(schema)))
+    base = "https://gcn.nasa.gov/schema/main/gcn/notices/so/alert.schema.json"
+    mission = {"$id": base, "$schema": "https://json-schema.org/draft/2020-12/schema",
+               "type": "object",
+               "allOf": [{"$ref": f"../core/{name}.schema.json"} for name in GCN_CORE]}
+    return jsonschema.Draft202012Validator(mission, registry=Registry().with_resources(resources))
+
+
+def test_every_record_is_valid_against_gcns_own_core_schemas(tmp_path):
+    """New, subsequent, updated and retracted alerts against GCN's core blocks as a mission
+    schema composes them: a field the core defines has the core's type and meaning."""
+    validator = gcn_validator()
+    first = plan(events_table(), tense="injection")
+    write_alerts(first, tmp_path)
+    later = events_table(obs_ids=["obs_A,obs_B", "obs_A", "obs_A", "obs_A"],
+                         t_last=[T0 + 3000, T0 + 100, T0 + 200, T0 + 300],
+                         cat_class=["new", "catalogued", "catalogued", "new"],
+                         cat_flux_ratio=[np.nan, 1.1, 1.0, np.nan])
+    records = first + plan(later, read_alerts(tmp_path), tense="current")
+    assert {r["alert_type"] for r in records} >= {"initial", "subsequent", "retraction"}
+    for record in records:
+        errors = [f"{'/'.join(map(str, e.path))}: {e.message}" for e in
+                  validator.iter_errors(record)]
         assert not errors, (record["alert_type"], errors)
 
 

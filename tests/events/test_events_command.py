@@ -240,5 +240,5 @@ def test_alerts_of_the_injected_flares(events_run, tmp_path):
     for record in records:
         jsonschema.Draft202012Validator(load_schema()).validate(record)
         assert record["alert_tense"] == "injection" and record["alert_type"] == "initial"
-        assert record["classification"] == "" and record["bands"] == ["f090", "f150"]
+        assert record["crossmatch_class"] == "" and record["bands"] == ["f090", "f150"]
     assert main(args) == 0 and len(list((tmp_path / "alerts").glob("*.json"))) == 2

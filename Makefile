@@ -31,7 +31,7 @@ test: $(STAMP)
 
 # The quick subset for development: everything but the end-to-end tests marked `slow`.
 test-fast: $(STAMP)
-	$(PY) -m pytest -m "not slow"
+	$(PY) -m pytest -n auto --dist loadfile -m "not slow"
 
 # ruff, configured in pyproject.toml
 lint: $(STAMP)

@@ -225,6 +225,12 @@ class ArchiveStatus:
         return "\n".join(lines)
 
 
+def group_keys(entries, fields) -> set:
+    """``(obs_id, group tuple)`` of archive ``entries`` (:func:`archive_entries`), the group
+    as the values of ``fields`` (:func:`group_fields`)."""
+    return {(obs, tuple(str(tags[f]) for f in fields)) for obs, tags, _, _ in entries}
+
+
 def archive_status(archive_or_config, selection: ObsSelection | None = None) -> ArchiveStatus:
     """Groups expected (:func:`expected_groups`), archived, and failed with the reason from
     the errlog (groups in the errlog and not in the archive; with a config, also groups
@@ -241,8 +247,7 @@ def archive_status(archive_or_config, selection: ObsSelection | None = None) -> 
     fields = group_fields(config, entries)
     chosen = selected_obs(config, selection) if config is not None else None
     take = (lambda obs: True) if chosen is None else (lambda obs: obs in chosen)
-    archived = {(obs, tuple(str(tags[f]) for f in fields)) for obs, tags, _, _ in entries
-                if take(obs)}
+    archived = {key for key in group_keys(entries, fields) if take(key[0])}
     expected = expected_groups(config, selection) if config is not None else None
     errors = {k: v for k, v in errlog_entries(index.parent).items() if take(k[0])}
     missing = (expected or set()) - archived
@@ -369,6 +374,16 @@ def write_table(table: Table, path, config=None, obs_ids=None, overwrite=False) 
     return path
 
 
+def archive_files(config_path) -> tuple:
+    """``(index, HDF5 files)`` of the archive ``config_path`` names: its index (which may not
+    exist yet) and the files its policy writes (``<stem>*<suffix>``: the ``simple`` policy's
+    file and the numbered ones of later runs)."""
+    cfg = read_config(config_path)
+    policy = Path(cfg["archive"]["policy"]["filename"])
+    return (Path(cfg["archive"]["index"]),
+            sorted(policy.parent.glob(policy.stem + "*" + policy.suffix)))
+
+
 def remove_orphans(config_path) -> list:
     """Groups of the archive's HDF5 files that its index does not name (a run stopped
     between writing a group and indexing it; sotodlib would fail to write it again with
@@ -376,15 +391,13 @@ def remove_orphans(config_path) -> list:
     deleted. Returns what was deleted, as ``file:group`` or file paths."""
     import h5py
 
-    cfg = read_config(config_path)
-    index = Path(cfg["archive"]["index"])
-    policy = Path(cfg["archive"]["policy"]["filename"])
+    index, files = archive_files(config_path)
+    policy = Path(read_config(config_path)["archive"]["policy"]["filename"])
     gone = []
     for leftover in sorted((policy.parent / "temp").glob("*")):
         if leftover.is_file():
             leftover.unlink()
             gone.append(str(leftover))
-    files = sorted(policy.parent.glob(policy.stem + "*" + policy.suffix))
     if not files:
         return gone
     named = {(Path(f).resolve(), d) for _, _, f, d in archive_entries(index)} \

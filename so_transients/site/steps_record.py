@@ -16,7 +16,7 @@ import json
 from pathlib import Path
 
 from so_transients.site.pipeline import ERRLOG, archive_index, read_config
-from so_transients.site.results import archive_entries, group_fields
+from so_transients.site.results import archive_entries, archive_files, group_fields, group_keys
 
 
 def steps_hash(config) -> str:
@@ -43,8 +43,7 @@ def archived_groups(config) -> list:
     if not index.is_file():
         return []
     entries = archive_entries(index)
-    fields = group_fields(config, entries)
-    return sorted({(obs, tuple(str(tags[f]) for f in fields)) for obs, tags, _, _ in entries})
+    return sorted(group_keys(entries, group_fields(config, entries)))
 
 
 def recorded(config) -> dict:
@@ -82,12 +81,9 @@ def record_groups(config, remade=False):
 def clear_archive(config) -> list:
     """Delete the archive of ``config`` (index, its HDF5 files, errlog and steps record) so
     that every group is made again; returns the paths deleted."""
-    cfg = read_config(config)
-    index = Path(cfg["archive"]["index"])
-    policy = Path(cfg["archive"]["policy"]["filename"])
+    index, files = archive_files(config)
     gone = []
-    candidates = [index, record_path(config), index.parent / ERRLOG,
-                  *policy.parent.glob(policy.stem + "*" + policy.suffix)]
+    candidates = [index, record_path(config), index.parent / ERRLOG, *files]
     for path in candidates:
         if path.is_file():
             path.unlink()

@@ -58,6 +58,10 @@ def run_alerts(events_folder, out, cfg: AlertsConfig, voevent=False, tense=None)
     if not events_path.is_file():
         raise ValueError(f"{folder}: no events.ecsv (run `so-transients events` first)")
     events = read_table(events_path)
+    missing = [c for c in ("event_uuid", "source_uuid") if c not in events.colnames]
+    if missing:
+        raise ValueError(f"{events_path}: no {', '.join(missing)} (written by an older "
+                         "so_transients): run `so-transients events` again")
     fits_path = folder / "lightcurve_fits.ecsv"
     fits = read_table(fits_path) if fits_path.is_file() else None
     if tense is None:

@@ -263,3 +263,15 @@ def test_command_writes_valid_alerts(tmp_path):
     (folder / "events.ecsv").unlink()
     with pytest.raises(ValueError, match="no events.ecsv"):
         run_alerts(folder, out, AlertsConfig())
+
+
+def test_an_events_table_without_uuids_is_refused_by_name(tmp_path):
+    """An events table of an older version (run-local ids only) is refused, naming the file
+    and what to do, rather than failing on a missing column."""
+    folder = tmp_path / "events"
+    folder.mkdir()
+    old = events_table()
+    old.remove_columns(["event_uuid", "source_uuid"])
+    old.write(folder / "events.ecsv")
+    with pytest.raises(ValueError, match=r"events\.ecsv: no event_uuid, source_uuid .*again"):
+        run_alerts(folder, tmp_path / "alerts", AlertsConfig(), tense="test")

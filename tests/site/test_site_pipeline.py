@@ -64,16 +64,22 @@ def test_every_bright_flare_is_found_at_the_right_time_and_place(flare_run):
     assert np.all(offset < PAPER_POINTING_ARCSEC["f090"]), offset
 
 
-@pytest.mark.xfail(strict=True, reason="the shipped pca_filter moves the 4 Jy flare (source 4, "
-                   "t_rise 1.8 s) by 6.3\" = 5.3 fit errors along RA (0.3\", 0.3 errors, "
-                   "without the pca_filter); every other position is within 2.8 errors")
+#: Floor of a fitted position's error in these tests (arcsec, each axis, in quadrature): the
+#: 40 Jy flare of ``flare_run``, fitted to 0.09", lies 0.3" from its truth with or without the
+#: PCA step (pull -3.2 without any PCA); 0.5" is a tenth of the fit errors of the other flares
+POSITION_FLOOR_ARCSEC = 0.5
+
+
 def test_positions_agree_with_their_fit_errors(flare_run):
-    """Each detection's RA and Dec offsets from the truth in units of its fit errors: all
-    2 N of them within K_PULL(2 N) (Bonferroni: a 1 % chance of one false failure for
-    Gaussian errors, whatever their correlation)."""
+    """Each detection's RA and Dec offsets from the truth in units of its fit errors (with
+    POSITION_FLOOR_ARCSEC in quadrature): all 2 N of them within K_PULL(2 N) (Bonferroni: a
+    1 % chance of one false failure for Gaussian errors, whatever their correlation). Before
+    the paper config hid crossings from the PCA (transient_pca_mask), its pca_filter moved
+    the 4 Jy flare (source 4) by 5.7 errors (5.7") along RA."""
     sim, config = flare_run
     matched, flares, _ = wide_match(sim.context.parent, archive_table(config))
-    pulls = sky_pulls(matched[matched["source_id"] >= 0], flares)
+    pulls = sky_pulls(matched[matched["source_id"] >= 0], flares,
+                      floor=POSITION_FLOOR_ARCSEC * ARCSEC)
     assert np.all(np.abs(pulls) < k_pull(pulls.size)), pulls
 
 
@@ -91,15 +97,16 @@ def wide_match(dataset, detections):
     return match(detections, flares, crossings, WIDE_DT, WIDE_OFFSET), flares, crossings
 
 
-def sky_pulls(hits, flares):
+def sky_pulls(hits, flares, floor=0.0):
     """(RA x cos Dec, Dec) offsets of matched detections from their flares over their fit
-    errors, flattened."""
+    errors (with ``floor``, rad, in quadrature), flattened."""
     truth = {(int(f["source_id"]), str(f["band"])): f for f in flares}
     out = []
     for row in hits:
         flare = truth[(int(row["source_id"]), str(row["bandpass"]))]
         dra = np.angle(np.exp(1j * (row["ra"] - flare["ra"]))) * np.cos(flare["dec"])
-        out += [dra / row["ra_err"], (row["dec"] - flare["dec"]) / row["dec_err"]]
+        out += [dra / np.hypot(row["ra_err"], floor),
+                (row["dec"] - flare["dec"]) / np.hypot(row["dec_err"], floor)]
     return np.array(out)
 
 

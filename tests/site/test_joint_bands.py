@@ -98,10 +98,11 @@ def test_the_joint_search_sees_the_flares_better_than_either_band(runs):
     """Both bands together see each flare (spectral index 0) better than either band alone:
     the joint statistic exceeds the best single-band coherent S/N at 9 of the 10 flares at
     seed 7 (by 0.3-0.9 where a band's search has a candidate; Z 4.6-5.1 at the three where
-    none has; 0.1-0.2 short at one), 8 allowed. At one max_far it detects at least as many flares as the bands alone
-    (at seed 7: 5-6 against 4-5; which flares near max_far pass moves with the background the
-    slides measure), and nothing else (0.08 false detections expected). A detection's fit over
-    both bands is kept where a band's own fit is below min_snr (5)."""
+    none has; 0.1-0.2 short at one), 8 allowed. At one max_far it detects at least as many
+    flares as the bands alone (at seed 7: 5-6 against 4-5; which flares near max_far pass
+    moves with the background the slides measure), and nothing else (0.08 false detections
+    expected). A detection's fit over both bands is kept where a band's own fit is below
+    min_snr (5)."""
     gained = best_statistic(runs["joint"], "joint_z") > best_statistic(runs["single"],
                                                                        "coherent_snr")
     assert np.sum(gained) >= 8, gained

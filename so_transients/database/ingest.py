@@ -117,19 +117,13 @@ def _run_source_uuid(events: Table, i) -> str:
     return str(events["source_uuid"][i]) if "source_uuid" in events.colnames else ""
 
 
-def _free_uuid(conn, wanted: str) -> str:
-    """``wanted`` (a run's source UUID) when no stored source has it yet, else a new one."""
-    taken = wanted and conn.execute(sa.select(schema.SOURCES.c.id).where(
-        schema.SOURCES.c.uuid == wanted)).first() is not None
-    return wanted if wanted and not taken else str(uuid.uuid4())
-
-
 def associate(conn, events: Table, cfg: AssociationConfig) -> tuple:
     """``(source ids, new ids)``: the source of each event (see the module), creating the new
     sources (their position and span are set by :func:`refresh_sources`). An event whose
     run ``source_uuid`` the database already knows (as a source's UUID, or an earlier event's
     ``source_uuid``) joins that source too; a new source takes its first event's
-    ``source_uuid``, so that alerts' ``so_source_id`` is the database's source UUID."""
+    ``source_uuid`` (free: none of its events' UUIDs is known, or it would have joined), so
+    that alerts' ``so_source_id`` is the database's source UUID."""
     if not len(events):
         return np.zeros(0, int), []
     stored = nearby_sources(conn, events, cfg)
@@ -154,7 +148,7 @@ def associate(conn, events: Table, cfg: AssociationConfig) -> tuple:
         else:
             first = mine[np.argmin(np.asarray(events["t_first"], float)[mine])]
             source = conn.execute(schema.SOURCES.insert().values(
-                uuid=_free_uuid(conn, _run_source_uuid(events, first)), name="",
+                uuid=_run_source_uuid(events, first) or str(uuid.uuid4()), name="",
                 ra=float(events["ra"][first]), dec=float(events["dec"][first]),
                 t_first=float(events["t_first"][first]), t_last=float(events["t_last"][first]),
                 n_events=0)).inserted_primary_key[0]
@@ -228,16 +222,20 @@ def ingest_observation(conn, part: ObservationRows, run: Run,
                        cfg: AssociationConfig) -> IngestResult:
     """One observation's rows, inside the caller's write transaction (see the module)."""
     observation_id, existed = _observation_row(conn, part.obs_id, run)
-    touched, event_ids = _delete_owned(conn, observation_id)
+    touched, row_ids = _delete_owned(conn, observation_id)
     ids, new = associate(conn, part.events, cfg)
     known = dict(zip(np.asarray(part.events["event_id"], int).tolist(), ids.tolist()))
     source_of = lambda event_ids: [known[int(e)] for e in event_ids]
     fixed = dict(observation_id=observation_id)
     ev = part.events
     snr = np.asarray(ev["peak_flux"], float) / np.asarray(ev["peak_flux_err"], float)
-    inserts = [
-        (schema.EVENTS, table_rows(ev, schema.EVENTS, fixed,
-                                   dict(source_id=ids, peak_snr=snr))),
+    event_rows = table_rows(ev, schema.EVENTS, fixed, dict(source_id=ids, peak_snr=snr))
+    for row in event_rows:                  # stored before: its row id is kept
+        if row.get("event_uuid") in row_ids:
+            row["id"] = row_ids[row["event_uuid"]]
+    inserts = [   # an insert's rows share their columns: events with a kept id apart
+        (schema.EVENTS, [row for row in event_rows if "id" in row]),
+        (schema.EVENTS, [row for row in event_rows if "id" not in row]),
         (schema.DETECTIONS, table_rows(part.detections, schema.DETECTIONS, fixed,
                                        dict(source_id=source_of(part.labels),
                                             run_event_id=part.labels))),
@@ -247,10 +245,6 @@ def ingest_observation(conn, part: ObservationRows, run: Run,
         (schema.LIGHTCURVE_FITS, table_rows(part.fits, schema.LIGHTCURVE_FITS, fixed,
                                             dict(source_id=source_of(part.fits["event_id"])))),
     ]
-    kept = [event_ids.get(row.get("event_uuid")) for row in inserts[0][1]]
-    inserts[0:1] = [(schema.EVENTS, [dict(row, id=k) for row, k in zip(inserts[0][1], kept)
-                                     if k is not None]),
-                    (schema.EVENTS, [row for row, k in zip(inserts[0][1], kept) if k is None])]
     for table, rows in inserts:
         if rows:
             conn.execute(table.insert(), rows)

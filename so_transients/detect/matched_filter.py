@@ -429,15 +429,14 @@ def _filter_rows(sp, spec, noise, bad_rows, sigma_t, out_snr, rows, weighted, y,
     dead = white <= 0
     for i, row in bad_rows.items():
         dead[i] |= row.all()
-    psd = np.where(dead[:, None], 1.0, psd)
-    y, norm, var_y, fknee, n_eff = sp.apply(spec, psd, np.where(dead, 1.0, white), sigma_t,
-                                            weighted, y)
+    psd, live_white = np.where(dead[:, None], 1.0, psd), np.where(dead, 1.0, white)
+    y, norm, var_y, fknee, n_eff = sp.apply(spec, psd, live_white, sigma_t, weighted, y)
     if source_free is None:
         measured = sp.robust_sigma(y, bad_rows)
     else:
         free_spec, free_y = source_free
-        measured = sp.robust_sigma(sp.apply(free_spec, psd, np.where(dead, 1.0, white), sigma_t,
-                                            free_spec, free_y)[0], bad_rows)
+        measured = sp.robust_sigma(sp.apply(free_spec, psd, live_white, sigma_t, free_spec,
+                                            free_y)[0], bad_rows)
     sigma_y = np.sqrt(var_y)
     ok = np.isfinite(measured) & (measured > 0)
     scale = np.where(ok, measured / sigma_y, 1.0)

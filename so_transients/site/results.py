@@ -375,12 +375,12 @@ def write_table(table: Table, path, config=None, obs_ids=None, overwrite=False) 
 
 
 def archive_files(config_path) -> tuple:
-    """``(index, HDF5 files)`` of the archive ``config_path`` names: its index (which may not
-    exist yet) and the files its policy writes (``<stem>*<suffix>``: the ``simple`` policy's
-    file and the numbered ones of later runs)."""
+    """``(index, folder, HDF5 files)`` of the archive ``config_path`` names: its index (which
+    may not exist yet), the folder its policy writes in and the files it wrote there
+    (``<stem>*<suffix>``: the ``simple`` policy's file and the numbered ones of later runs)."""
     cfg = read_config(config_path)
     policy = Path(cfg["archive"]["policy"]["filename"])
-    return (Path(cfg["archive"]["index"]),
+    return (Path(cfg["archive"]["index"]), policy.parent,
             sorted(policy.parent.glob(policy.stem + "*" + policy.suffix)))
 
 
@@ -391,10 +391,9 @@ def remove_orphans(config_path) -> list:
     deleted. Returns what was deleted, as ``file:group`` or file paths."""
     import h5py
 
-    index, files = archive_files(config_path)
-    policy = Path(read_config(config_path)["archive"]["policy"]["filename"])
+    index, folder, files = archive_files(config_path)
     gone = []
-    for leftover in sorted((policy.parent / "temp").glob("*")):
+    for leftover in sorted((folder / "temp").glob("*")):
         if leftover.is_file():
             leftover.unlink()
             gone.append(str(leftover))

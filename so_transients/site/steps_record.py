@@ -81,7 +81,7 @@ def record_groups(config, remade=False):
 def clear_archive(config) -> list:
     """Delete the archive of ``config`` (index, its HDF5 files, errlog and steps record) so
     that every group is made again; returns the paths deleted."""
-    index, files = archive_files(config)
+    index, _, files = archive_files(config)
     gone = []
     candidates = [index, record_path(config), index.parent / ERRLOG, *files]
     for path in candidates:

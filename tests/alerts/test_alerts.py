@@ -49,6 +49,25 @@ def events_table(**changes):
     return typed_table(schema.EVENTS, cols)
 
 
+def later_table():
+    """``events_table`` of a later run: the new flare seen again in obs_B, the flare of QSO A
+    now at its catalogue flux."""
+    return events_table(obs_ids=["obs_A,obs_B", "obs_A", "obs_A", "obs_A"],
+                        t_last=[T0 + 3000, T0 + 100, T0 + 200, T0 + 300],
+                        cat_class=["new", "catalogued", "catalogued", "new"],
+                        cat_flux_ratio=[np.nan, 1.1, 1.0, np.nan])
+
+
+def records_of_every_kind(folder):
+    """Initial alerts (tense injection) written to ``folder``, then the later run's
+    subsequent, updated and retracted ones (tense current): every record."""
+    first = plan(events_table(), tense="injection")
+    write_alerts(first, folder)
+    records = first + plan(later_table(), read_alerts(folder), tense="current")
+    assert {r["alert_type"] for r in records} >= {"initial", "subsequent", "retraction"}
+    return records
+
+
 def fits_table():
     return Table(dict(event_id=[0], bandpass=["f090"], t_rise=[10.0], t_rise_err=[3.0],
                       t_decay=[20.0], t_decay_err=[4.0], fit_ok=[True]))
@@ -91,10 +110,7 @@ def test_followups_and_retractions(tmp_path):
     # the same events again: nothing new
     assert plan(events_table(), history) == []
     # the new flare seen again in obs_B; the flare of QSO A now at its catalogue flux
-    later = events_table(obs_ids=["obs_A,obs_B", "obs_A", "obs_A", "obs_A"],
-                         t_last=[T0 + 3000, T0 + 100, T0 + 200, T0 + 300],
-                         cat_class=["new", "catalogued", "catalogued", "new"],
-                         cat_flux_ratio=[np.nan, 1.1, 1.0, np.nan])
+    later = later_table()
     records = {r["so_event_id"] if "so_event_id" in r else r["id"]: r for r in plan(later, history)}
     seen = records[UUIDS[0]]
     assert seen["alert_type"] == "subsequent" and seen["record_number"] == 2
@@ -163,15 +179,7 @@ def test_every_packet_is_valid_against_the_ivoas_voevent_schema(tmp_path):
     own XSD (tests/alerts/schemas/VOEvent-v2.0.xsd), not only against what we expect."""
     xmlschema = pytest.importorskip("xmlschema")
     xsd = xmlschema.XMLSchema(str(Path(__file__).parent / "schemas" / "VOEvent-v2.0.xsd"))
-    first = plan(events_table(), tense="injection")
-    write_alerts(first, tmp_path)
-    later = events_table(obs_ids=["obs_A,obs_B", "obs_A", "obs_A", "obs_A"],
-                         t_last=[T0 + 3000, T0 + 100, T0 + 200, T0 + 300],
-                         cat_class=["new", "catalogued", "catalogued", "new"],
-                         cat_flux_ratio=[np.nan, 1.1, 1.0, np.nan])
-    records = first + plan(later, read_alerts(tmp_path), tense="current")
-    assert {r["alert_type"] for r in records} >= {"initial", "subsequent", "retraction"}
-    for record in records:
+    for record in records_of_every_kind(tmp_path):
         errors = [str(e.reason) for e in xsd.iter_errors(to_voevent(record))]
         assert not errors, (record["alert_type"], errors)
 
@@ -202,15 +210,7 @@ def test_every_record_is_valid_against_gcns_own_core_schemas(tmp_path):
     """New, subsequent, updated and retracted alerts against GCN's core blocks as a mission
     schema composes them: a field the core defines has the core's type and meaning."""
     validator = gcn_validator()
-    first = plan(events_table(), tense="injection")
-    write_alerts(first, tmp_path)
-    later = events_table(obs_ids=["obs_A,obs_B", "obs_A", "obs_A", "obs_A"],
-                         t_last=[T0 + 3000, T0 + 100, T0 + 200, T0 + 300],
-                         cat_class=["new", "catalogued", "catalogued", "new"],
-                         cat_flux_ratio=[np.nan, 1.1, 1.0, np.nan])
-    records = first + plan(later, read_alerts(tmp_path), tense="current")
-    assert {r["alert_type"] for r in records} >= {"initial", "subsequent", "retraction"}
-    for record in records:
+    for record in records_of_every_kind(tmp_path):
         errors = [f"{'/'.join(map(str, e.path))}: {e.message}" for e in
                   validator.iter_errors(record)]
         assert not errors, (record["alert_type"], errors)

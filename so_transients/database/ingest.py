@@ -26,6 +26,7 @@ import logging
 import math
 import uuid
 from dataclasses import dataclass
+from pathlib import Path
 from datetime import datetime, timezone
 
 import numpy as np
@@ -218,6 +219,26 @@ def _delete_owned(conn, observation_id) -> tuple:
     return {row[0] for row in stored}, {row[1]: row[2] for row in stored if row[1]}
 
 
+def cutout_images(cutouts: Table, folder) -> dict:
+    """``data`` (Jy, rows of pixels, None where nothing fell: lightcurvedb's ``Cutout.data``)
+    and ``wcs`` (the FITS header's WCS as text) of each cutout, read from its file in the
+    run's ``folder``; names the file it cannot read."""
+    from astropy.io import fits
+    from astropy.wcs import WCS
+
+    data, wcs = [], []
+    for name in cutouts["file"]:
+        path = Path(folder) / str(name)
+        try:
+            with fits.open(path) as hdus:
+                image, header = hdus[0].data.astype(float) / 1000.0, hdus[0].header
+        except (OSError, IndexError, AttributeError) as exc:
+            raise ValueError(f"{path}: cannot read the cutout: {exc}") from None
+        data.append([[v if math.isfinite(v) else None for v in row] for row in image.tolist()])
+        wcs.append(WCS(header).to_header_string())
+    return dict(data=data, wcs=wcs)
+
+
 def ingest_observation(conn, part: ObservationRows, run: Run,
                        cfg: AssociationConfig) -> IngestResult:
     """One observation's rows, inside the caller's write transaction (see the module)."""
@@ -244,6 +265,9 @@ def ingest_observation(conn, part: ObservationRows, run: Run,
                                                   part.lightcurves["event_id"])))),
         (schema.LIGHTCURVE_FITS, table_rows(part.fits, schema.LIGHTCURVE_FITS, fixed,
                                             dict(source_id=source_of(part.fits["event_id"])))),
+        (schema.CUTOUTS, table_rows(part.cutouts, schema.CUTOUTS, fixed,
+                                    dict(source_id=source_of(part.cutouts["event_id"]),
+                                         **cutout_images(part.cutouts, run.folder)))),
     ]
     for table, rows in inserts:
         if rows:

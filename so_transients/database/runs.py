@@ -1,7 +1,8 @@
 """One run of ``so-transients events`` as the database ingests it: its tables read back, its
 detections tied to their events, and the rows split by observation.
 
-A run's folder holds ``events.ecsv``, ``lightcurves.ecsv`` and ``lightcurve_fits.ecsv``; the
+A run's folder holds ``events.ecsv``, ``lightcurves.ecsv`` and ``lightcurve_fits.ecsv`` (and,
+since 0.9, ``cutouts.ecsv`` with the cutouts' FITS files); the
 detections they were made from are the catalogue table (a file given, else ``detections.ecsv``
 in the folder, beside the archive of the preprocess config named in the events' provenance,
 where ``run`` and ``make demo`` write it, or next to the folder), else that archive itself.
@@ -24,6 +25,8 @@ import numpy as np
 from astropy.table import Table
 
 from so_transients.common.tables import read_table
+from so_transients.common.candidates import typed_table
+from so_transients.events import schema as event_schema
 from so_transients.events.association import AssociationConfig
 from so_transients.events.tables import associate_detections
 from so_transients.site.pipeline import archive_index
@@ -34,6 +37,8 @@ log = logging.getLogger(__name__)
 #: The event tables of a run folder.
 FILES = {"events": "events.ecsv", "lightcurves": "lightcurves.ecsv",
          "fits": "lightcurve_fits.ecsv"}
+#: ... and those an older run's folder may lack (read as empty).
+OPTIONAL_FILES = {"cutouts": ("cutouts.ecsv", event_schema.CUTOUTS)}
 
 
 @dataclass
@@ -47,6 +52,7 @@ class Run:
     obs_ids: list
     provenance: dict = field(default_factory=dict)
     folder: str = ""
+    cutouts: Table = field(default_factory=lambda: typed_table(event_schema.CUTOUTS, {}))
 
 
 @dataclass
@@ -58,6 +64,7 @@ class ObservationRows:
     fits: Table
     detections: Table
     labels: np.ndarray
+    cutouts: Table
 
     @property
     def t_first(self) -> float:
@@ -126,9 +133,12 @@ def read_run(folder, detections=None, association: AssociationConfig | None = No
             raise FileNotFoundError(f"{path}: missing (is {folder} the output folder of "
                                     "so-transients events?)")
         tables[key] = _read(path)
+    for key, (name, columns) in OPTIONAL_FILES.items():
+        path = folder / name
+        tables[key] = _read(path) if path.is_file() else typed_table(columns, {})
     provenance = dict(tables["events"].meta.get("provenance", {}))
     dets, where = find_detections(folder, provenance, detections)
-    derived = readable_columns()
+    derived = readable_columns() | {"event_id"}   # the events command's labels: tied again
     dets = dets[[c for c in dets.colnames if c not in derived]]
     if "detected" in dets.colnames:
         dets = dets[np.asarray(dets["detected"], bool)]
@@ -136,7 +146,7 @@ def read_run(folder, detections=None, association: AssociationConfig | None = No
     obs_ids = sorted({*map(str, provenance.get("obs_ids", [])), *map(str, dets["obs_id"]),
                       *map(str, tables["lightcurves"]["obs_id"])})
     return Run(tables["events"], tables["lightcurves"], tables["fits"], dets, labels, obs_ids,
-               provenance, str(folder.resolve()))
+               provenance, str(folder.resolve()), tables["cutouts"])
 
 
 def owners(run: Run) -> dict:
@@ -161,5 +171,6 @@ def split(run: Run) -> list:
         pick = lambda table: table[np.isin(np.asarray(table["event_id"], int), ids)]
         sel = np.isin(run.labels, ids)
         parts.append(ObservationRows(obs_id, pick(run.events), pick(run.lightcurves),
-                                     pick(run.fits), run.detections[sel], run.labels[sel]))
+                                     pick(run.fits), run.detections[sel], run.labels[sel],
+                                     pick(run.cutouts)))
     return sorted(parts, key=lambda p: (p.t_first, p.obs_id))

@@ -8,12 +8,13 @@ Tables (SQLAlchemy Core, one :data:`METADATA`):
   came from (run folder, preprocess config and its digest, package version, time);
 * ``sources``: the persistent sources, ``id`` kept across observations (and a UUID for
   lightcurvedb's ``source_id``), with the weighted position and time span of their events;
-* ``events``, ``detections``, ``lightcurve_points``, ``lightcurve_fits``: the rows of one run
-  of ``so-transients events``, each with the observation it was ingested with
+* ``events``, ``detections``, ``lightcurve_points``, ``lightcurve_fits``, ``cutouts``: the rows
+  of one run of ``so-transients events``, each with the observation it was ingested with
   (``observation_id``) and its persistent source (``source_id``).
 
-The last four take their columns from the declarations of the files they store:
-:data:`so_transients.events.schema.EVENTS`, ``LIGHTCURVES``, ``LIGHTCURVE_FITS`` and the
+The last five take their columns from the declarations of the files they store:
+:data:`so_transients.events.schema.EVENTS`, ``LIGHTCURVES``, ``LIGHTCURVE_FITS``, ``CUTOUTS``
+(with the cutout itself in JSON, as lightcurvedb's ``Cutout`` holds it) and the
 candidate schema (:data:`so_transients.common.candidates.SCHEMA`), each with its kind, unit and
 meaning. The run's own numbering is kept as ``run_event_id`` and ``run_source_id``
 (:data:`RENAMED`). A column added to one of those declarations needs no code here: opening the
@@ -148,21 +149,38 @@ LIGHTCURVE_FITS = sa.Table(
     sa.UniqueConstraint("observation_id", "run_event_id", "bandpass"),
 )
 
+CUTOUTS = sa.Table(
+    "cutouts", METADATA,
+    *_owned(),
+    *_declared("cutouts", event_schema.CUTOUTS),
+    sa.Column("data", JSON, comment="the cutout in Jy, rows of pixels, null where nothing fell "
+                                    "(lightcurvedb Cutout data)"),
+    sa.Column("wcs", sa.Text, comment="its FITS WCS header"),
+    sa.Column("extra", JSON, comment="columns of the cutouts file no declaration names"),
+    sa.UniqueConstraint("observation_id", "run_event_id", "bandpass"),
+)
+
 #: The per-observation tables, in the order their rows are deleted.
-OWNED = (LIGHTCURVE_FITS, LIGHTCURVE_POINTS, DETECTIONS, EVENTS)
+OWNED = (CUTOUTS, LIGHTCURVE_FITS, LIGHTCURVE_POINTS, DETECTIONS, EVENTS)
 
 
 # ----------------------------------------------------------------------------- migrations
 
 def _create_tables(conn):
-    """Version 1: every table and index."""
+    """Version 1: every table and index (a new database gets the later versions' too)."""
     METADATA.create_all(conn)
+
+
+def _create_cutouts(conn):
+    """Version 2: the events' sky cutouts."""
+    CUTOUTS.create(conn, checkfirst=True)
 
 
 #: ``(version, description, upgrade(connection))`` in order; append, never edit.
 MIGRATIONS = (
     (1, "observations, sources, events, detections, light-curve points and fits",
      _create_tables),
+    (2, "cutouts: each event's sky cutout per band, made from the TOD", _create_cutouts),
 )
 VERSION = MIGRATIONS[-1][0]
 

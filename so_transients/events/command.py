@@ -19,6 +19,10 @@ Built like a sotodlib site-pipeline element (:func:`get_parser`, :func:`main`; a
                                              FluxMeasurement fields plus the TOD's own)
        lightcurve_fits.ecsv                  eq. 1 per event and band
        failures.ecsv                         units that failed: observation, group, error
+       detections.ecsv                       the archive's detections, with their event_id
+       cutouts.ecsv, cutouts/                per event and band, a sky cutout of its best
+                                             crossing made from the TOD (FITS) and the
+                                             detector time streams there (NPZ)
        figures/<name>.png                    light curve per band, position over the tracks
        units/                                the work units' results (resumable)
 
@@ -45,6 +49,7 @@ from so_transients.site.results import (
 from so_transients.site.pipeline import archive_index
 from so_transients.site.selection import ObsSelection, add_selection_arguments
 from so_transients.events.config import EventsConfig, load_events_config
+from so_transients.events.cutouts import write_cutouts
 from so_transients.events.group_photometry import GroupJob, run_job, tracks_path
 from so_transients.events.tables import (
     associate_detections, complete_events, crossmatch_events, fit_table, lightcurve_table
@@ -189,8 +194,11 @@ def build_events(cfg: EventsConfig, progress=True, pool=None, as_completed=None,
                                        events["t_last"].max())
         events = crossmatch_events(events, catalogue, ephemerides, cfg.crossmatch)
     prov = provenance(cfg.preprocess, status.obs_ids)
+    detections = detections.copy()
+    detections["event_id"] = labels
     tables = dict(events=events, lightcurves=lightcurves, lightcurve_fits=fits,
-                  failures=failures)
+                  failures=failures, detections=detections,
+                  cutouts=write_cutouts(events, statuses, out))
     for name, table in tables.items():
         write(table, out / f"{name}.ecsv", prov)
         if name in ("events", "lightcurves"):

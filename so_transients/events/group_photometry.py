@@ -5,7 +5,9 @@ sotodlib's ``load_and_preprocess`` (``transient_filter``'s ``process()`` rebuild
 filtered data), each event's position is measured at every crossing of its time window
 (:mod:`so_transients.detect.forced_fit`), and the rows are written to one ECSV file (with the
 sky tracks of the detectors at each event's best crossing, for its figure, in an NPZ file
-beside it). A unit that finished is not run again while its inputs are unchanged; a unit
+beside it, and for each event's best crossing in each band the sky cutout and the detector
+time streams a person vets it with, :mod:`so_transients.detect.cutout`, in a third). A unit
+that finished is not run again while its inputs are unchanged; a unit
 that fails returns the error, naming the observation, the group and the archive.
 """
 from __future__ import annotations
@@ -21,6 +23,7 @@ import numpy as np
 from astropy.table import Table
 
 from so_transients.common import pointing
+from so_transients.detect.cutout import crossing_streams, cutout_map
 from so_transients.detect.find import FindConfig, group_scans
 from so_transients.detect.fit import FitConfig, FitInputs, fit_window, measure_error_scale
 from so_transients.detect.forced_fit import PhotometryConfig, group_crossings, measure_crossings
@@ -63,7 +66,8 @@ class GroupJob:
 
 def job_done(job: GroupJob) -> bool:
     path = Path(job.out)
-    return path.is_file() and Table.read(path).meta.get("digest") == job.digest()
+    return (path.is_file() and vetting_path(path).is_file()
+            and Table.read(path).meta.get("digest") == job.digest())
 
 
 def run_job(job: GroupJob) -> dict:
@@ -74,7 +78,7 @@ def run_job(job: GroupJob) -> dict:
     if job_done(job):
         return status
     try:
-        table, tracks = measure_group(job)
+        table, tracks, vetting = measure_group(job)
     except Exception as exc:          # recorded per unit; the other units go on
         status["error"] = f"{type(exc).__name__}: {exc}"
         status["traceback"] = traceback.format_exc()
@@ -82,11 +86,12 @@ def run_job(job: GroupJob) -> dict:
     table.meta.update(digest=job.digest(), obs_id=job.obs_id, tags=dict(job.tags))
     out = Path(job.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    # the tracks first, and each file complete before it gets its name: an interrupted
-    # unit never looks finished
-    partial = tracks_path(out).with_name(tracks_path(out).name + ".partial.npz")
-    np.savez_compressed(partial, **tracks)
-    os.replace(partial, tracks_path(out))
+    # the tracks and cutouts first, and each file complete before it gets its name: an
+    # interrupted unit never looks finished
+    for arrays, path in ((tracks, tracks_path(out)), (vetting, vetting_path(out))):
+        partial = path.with_name(path.name + ".partial.npz")
+        np.savez_compressed(partial, **arrays)
+        os.replace(partial, path)
     partial = out.with_name(out.name + ".partial")
     table.write(partial, format="ascii.ecsv", overwrite=True)
     os.replace(partial, out)
@@ -95,6 +100,22 @@ def run_job(job: GroupJob) -> dict:
 
 def tracks_path(unit_path) -> Path:
     return Path(unit_path).with_suffix(".tracks.npz")
+
+
+def vetting_path(unit_path) -> Path:
+    """The unit's cutouts and time streams: ``<event_id>_<band>_<name>`` arrays
+    (:func:`vetting_arrays`)."""
+    return Path(unit_path).with_suffix(".vetting.npz")
+
+
+def read_vetting(path) -> dict:
+    """{(event_id, band): {name: array}} of a unit's :func:`vetting_path` file."""
+    out = {}
+    with np.load(path) as held:
+        for key in held.files:
+            eid, band, name = key.split("_", 2)
+            out.setdefault((int(eid), band), {})[name] = held[key]
+    return out
 
 
 def load_group(job: GroupJob):
@@ -125,16 +146,19 @@ def module_of(aman) -> str:
 
 
 def measure_group(job: GroupJob):
-    """``(table, tracks)``: the forced photometry of every event of ``job`` at every
-    crossing of the group, and for each event the detector tracks of its best crossing."""
+    """``(table, tracks, vetting)``: the forced photometry of every event of ``job`` at every
+    crossing of the group, and for each event the detector tracks of its best crossing and
+    what a person vets it with there (:func:`vetting_arrays`)."""
     aman = load_group(job)
+    signal = aman.signal if "signal" in aman._fields else None
+    names = np.asarray(aman.dets.vals).astype(str)
     data = FitInputs.from_aman(aman, speed_tolerance=job.find.speed_tolerance)
     scan, _ = group_scans(aman.timestamps, aman.boresight.az, aman.boresight.el, job.find,
                           job.name)
     bands = np.asarray(aman.transient_filter.bandpass).astype(str)
     wafers = (np.asarray(aman.det_info.wafer_slot).astype(str)
               if "wafer_slot" in aman.det_info._fields else np.full(aman.dets.count, ""))
-    rows, tracks = [], {}
+    rows, tracks, vetting = [], {}, {}
     for band in np.unique(bands):
         band_dets = np.flatnonzero(bands == band)
         reach = 3 * float(np.median(data.beam_sigma[band_dets]))
@@ -155,14 +179,38 @@ def measure_group(job: GroupJob):
             rows.append(dict(res, event_id=np.full(n, ev["event_id"]), ctime=times[keep],
                              scan=scans[keep], bandpass=np.full(n, band),
                              wafer_slot=np.full(n, wafers[band_dets[0]])))
-            best = times[keep][np.argmax(res["snr"])]
+            k = int(np.argmax(res["snr"]))
+            best = times[keep][k]
             tracks[f"{ev['event_id']}_{band}"] = detector_tracks(data, ev["ra"], ev["dec"],
                                                                  best, band_dets, job.fit)
+            vetting.update(vetting_arrays(
+                data, signal, names, ev, band, best, band_dets, job.fit, res["flux"][k],
+                res["offset"][k], res["snr"][k], job.obs_id, wafers[band_dets[0]]))
     table = Table({k: np.concatenate([r[k] for r in rows]) for k in rows[0]}) if rows \
         else Table({k: np.zeros(0) for k in UNIT_COLUMNS + ("bandpass", "wafer_slot")})
     table["obs_id"] = np.full(len(table), job.obs_id)
     table["module"] = np.full(len(table), module_of(aman))
-    return table, tracks
+    return table, tracks, vetting
+
+
+def vetting_arrays(data: FitInputs, signal, names, event, band, t_best, band_dets, fit_cfg,
+                   flux, offset, snr, obs_id, wafer) -> dict:
+    """The cutout (``map``, ``weight``, ``wcs``: its FITS header as text) and the detector
+    time streams (:func:`so_transients.detect.cutout.crossing_streams`, with the detectors'
+    ``names``) of ``event`` at its
+    best crossing ``t_best`` in ``band``, keyed ``<event_id>_<band>_<name>``; ``ctime``,
+    ``flux`` and ``snr`` (the forced fit's, mJy), ``obs_id`` and ``wafer_slot`` say which
+    crossing, ``beam_fwhm`` (arcmin) the band's beam."""
+    sky, weight, wcs = cutout_map(data, event["ra"], event["dec"], t_best, band_dets, fit_cfg)
+    streams = crossing_streams(data, signal, event["ra"], event["dec"], t_best, band_dets,
+                               fit_cfg, flux, offset)
+    fwhm = float(np.median(data.beam_sigma[band_dets])) * np.sqrt(8 * np.log(2))
+    arrays = dict(map=sky.astype(np.float32), weight=weight.astype(np.float32),
+                  beam_fwhm=np.array(np.degrees(fwhm) * 60.0),
+                  wcs=np.array(wcs.to_header_string()), ctime=np.array(t_best),
+                  flux=np.array(flux), snr=np.array(snr), obs_id=np.array(obs_id),
+                  wafer_slot=np.array(wafer), det_names=names[streams["dets"]], **streams)
+    return {f"{event['event_id']}_{band}_{name}": value for name, value in arrays.items()}
 
 
 def detector_tracks(data: FitInputs, ra, dec, t_center, band_dets, fit_cfg: FitConfig,

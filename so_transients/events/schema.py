@@ -4,7 +4,9 @@
 * ``lightcurves``: one row per crossing and band of an event's position, in lightcurvedb's
   ``FluxMeasurement`` fields (source, time, position and uncertainties, flux, frequency,
   module) plus the TOD's own (observation, wafer, scan, detection flag, upper limit);
-* ``lightcurve_fits``: one row per event and band, the paper's eq. 1 fitted.
+* ``lightcurve_fits``: one row per event and band, the paper's eq. 1 fitted;
+* ``cutouts``: one row per event and band, the sky cutout of its best crossing made from the
+  TOD (a FITS file with its WCS) and the detector time streams there.
 
 Catalogue units: degrees for positions, arcsec for their errors, ctime seconds and ISO UTC
 for times, mJy for fluxes. To add a column: add one :class:`Column` here and fill it where
@@ -16,7 +18,7 @@ from __future__ import annotations
 from so_transients.common.candidates import Column
 from so_transients.events.lightcurve_fit import FLARE_PARAMS
 
-_E, _L, _F = "events", "lightcurves", "lightcurve_fits"
+_E, _L, _F, _C = "events", "lightcurves", "lightcurve_fits", "cutouts"
 
 EVENTS = (
     Column("event_id", "int", None, _E, "event number in this run, in order of first detection"),
@@ -65,6 +67,8 @@ EVENTS = (
     Column("cat_source_id", "int", None, _E, "its id there (socat source_id, or sso_id of a "
                                              "solar-system object), -1 if none"),
     Column("cat_source_name", "str", None, _E, "its name there"),
+    Column("cat_ra", "float", "deg", _E, "its RA (a solar-system object's at the event)"),
+    Column("cat_dec", "float", "deg", _E, "its Dec"),
     Column("cat_separation", "float", "arcmin", _E, "distance from the event's position"),
     Column("cat_flux_ratio", "float", None, _E, "peak_flux / the catalogued flux (NaN when the "
                                                 "catalogue has none)"),
@@ -110,4 +114,29 @@ LIGHTCURVE_FITS = (
     Column("chi2_red", "float", None, _F, "reduced chi^2"),
     Column("n_points", "int", None, _F, "light-curve points fitted"),
     Column("fit_ok", "bool", None, _F, "the fit converged with finite errors"),
+)
+
+CUTOUTS = (
+    Column("event_id", "int", None, _C, "the event"),
+    Column("event_uuid", "str", None, _C, "its UUID (as in events, alerts and the database)"),
+    Column("source_uuid", "str", None, _C, "its source's UUID"),
+    Column("bandpass", "str", None, _C, "band"),
+    Column("obs_id", "str", None, _C, "observation of the crossing"),
+    Column("wafer_slot", "str", None, _C, "wafer of the crossing"),
+    Column("ctime", "float", "s", _C, "the crossing's centre: the event's highest forced S/N "
+                                      "in this band"),
+    Column("time", "str", None, _C, "the same as ISO UTC (lightcurvedb Cutout time)"),
+    Column("frequency", "int", "GHz", _C, "band as lightcurvedb's integer frequency"),
+    Column("flux", "float", "mJy", _C, "forced flux at that crossing"),
+    Column("snr", "float", None, _C, "its S/N"),
+    Column("beam_fwhm", "float", "arcmin", _C, "the band's beam FWHM (the detectors' median)"),
+    Column("peak_ra", "float", "deg", _C, "RA of the cutout's brightest pixel"),
+    Column("peak_dec", "float", "deg", _C, "Dec of the cutout's brightest pixel"),
+    Column("peak_offset", "float", "arcmin", _C, "that pixel's distance from the event's "
+                                                 "position"),
+    Column("file", "str", None, _C, "FITS file of the cutout, relative to the events folder: "
+                                    "the binned filtered amplitude (mJy) with its WCS, and "
+                                    "its weights (1/mJy^2) in HDU WEIGHT"),
+    Column("streams", "str", None, _C, "NPZ file of the detector time streams there "
+                                       "(so_transients.detect.cutout.crossing_streams)"),
 )

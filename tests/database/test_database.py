@@ -87,7 +87,8 @@ def test_ingesting_a_run_twice_gives_the_same_rows(new_db, tmp_path):
     assert db("ingest", "--db", url, folder) == 0
     first, first_content = stored(url), content(url)
     assert first == {"observations": 3, "sources": 4, "events": 6, "detections": 24,
-                     "lightcurve_points": len(run.lightcurves), "lightcurve_fits": 0}
+                     "lightcurve_points": len(run.lightcurves), "lightcurve_fits": 0,
+                     "cutouts": 0}    # a synthetic run: no cutouts.ecsv, as an older folder
     def ids():
         engine = open_database(url, create=False)
         events, sources = find_events(engine), find_sources(engine)
@@ -366,6 +367,24 @@ def test_undeclared_columns_are_kept_and_declared_ones_are_added(new_db, tmp_pat
                                                            applied_utc="2030-01-01T00:00:00"))
     with pytest.raises(schema.SchemaError, match="newer"):
         open_database(url)
+
+
+def test_a_database_of_schema_version_1_gets_the_cutouts_table(new_db):
+    """A database made before the cutouts (version 1: no such table) is brought to the
+    current version when opened for writing, its rows kept."""
+    url = new_db()
+    engine = open_database(url)
+    ingest_run(engine, night("v", T0, 1, seed=71))
+    with write_transaction(engine) as conn:
+        conn.execute(schema.CUTOUTS.delete())
+        schema.CUTOUTS.drop(conn)
+        conn.execute(schema.SCHEMA_VERSION.delete().where(schema.SCHEMA_VERSION.c.version > 1))
+        assert schema.stored_version(conn) == 1
+    engine = open_database(url)
+    with engine.connect() as conn:
+        assert schema.stored_version(conn) == schema.VERSION >= 2
+        assert sa.inspect(conn).has_table("cutouts")
+    assert counts(engine)["events"] == 2 and counts(engine)["cutouts"] == 0
 
 
 def test_a_run_whose_detections_do_not_give_its_events_is_refused(new_db, tmp_path):

@@ -6,11 +6,14 @@ import uuid
 
 import numpy as np
 import pytest
+import sqlalchemy as sa
+from astropy.io import fits
 from astropy.table import Table
 
 from so_transients.alerts.command import run_alerts
 from so_transients.alerts.records import AlertsConfig
 from so_transients.cli import main as cli_main
+from so_transients.database import schema
 from so_transients.database.command import get_parser, main
 from so_transients.database.engine import open_database
 from so_transients.database.queries import counts, find_events, find_sources, lightcurve
@@ -83,6 +86,20 @@ def test_a_real_run_ingested_twice_then_seen_again(real_run, new_db, tmp_path):
     assert first["events"] == len(events) and first["lightcurve_points"] == len(points)
     assert first["detections"] == np.sum(events["n_detections"])
     assert first["observations"] == 1
+    # each event's cutout per band, its pixels in Jy as lightcurvedb's Cutout holds them
+    cutouts = Table.read(real_run / "events" / "cutouts.ecsv")
+    assert first["cutouts"] == len(cutouts) >= len(events)
+    engine = open_database(url, create=False)
+    with engine.connect() as conn:
+        stored = conn.execute(sa.select(schema.CUTOUTS.c.run_event_id, schema.CUTOUTS.c.data,
+                                        schema.CUTOUTS.c.wcs, schema.CUTOUTS.c.peak_ra)
+                              .order_by(schema.CUTOUTS.c.id)).all()
+    image = fits.getdata(real_run / "events" / cutouts["file"][0])
+    data = np.array(stored[0].data, dtype=float)          # null (nothing fell there): NaN
+    assert data.shape == image.shape
+    assert np.allclose(data, image / 1000.0, equal_nan=True, rtol=1e-6)
+    assert "RA---TAN" in stored[0].wcs and stored[0].peak_ra == pytest.approx(
+        cutouts["peak_ra"][0])
     assert db("ingest", "--db", url, real_run / "events") == 0
     assert counts(open_database(url, create=False)) == first
     # the same flare seen in another observation 12 hours later keeps its source id

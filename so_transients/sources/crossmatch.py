@@ -101,7 +101,8 @@ def crossmatch(ra, dec, flux_mjy, time, catalogue: Catalogue, ephem: Ephemerides
     ``ra``, ``dec`` in radians, ``flux_mjy`` the measured flux, ``time`` ctimes (for the
     solar-system objects). Returns columns (arrays of the measurements' length):
     ``catalogue`` (the catalogue's label, '' where nothing matched), ``cat_source_id``
-    (socat's source_id or sso_id, -1 none), ``cat_source_name``, ``cat_separation`` (arcmin),
+    (socat's source_id or sso_id, -1 none), ``cat_source_name``, ``cat_ra`` and ``cat_dec``
+    (degrees; a solar-system object's at ``time``), ``cat_separation`` (arcmin),
     ``cat_flux_ratio`` (measured / catalogued flux; NaN when the catalogue has no flux) and
     ``cat_class`` (see the module).
     """
@@ -114,14 +115,15 @@ def crossmatch(ra, dec, flux_mjy, time, catalogue: Catalogue, ephem: Ephemerides
         ids, names, e_ra, e_dec, e_flux = ephemeris_positions(ephem, time)
         moving, moving_sep = _nearest(ra, dec, e_ra, e_dec)
     else:
-        ids = names = e_flux = None
+        ids = names = e_ra = e_dec = e_flux = None
         moving, moving_sep = np.full(n, -1), np.full(n, np.inf)
     out = dict(catalogue=np.full(n, "", object), cat_source_id=np.full(n, -1, np.int64),
-               cat_source_name=np.full(n, "", object), cat_separation=np.full(n, np.nan),
+               cat_source_name=np.full(n, "", object), cat_ra=np.full(n, np.nan),
+               cat_dec=np.full(n, np.nan), cat_separation=np.full(n, np.nan),
                cat_flux_ratio=np.full(n, np.nan), cat_class=np.full(n, "new", object))
     with np.errstate(divide="ignore", invalid="ignore"):
         _fill(out, flux, radius, catalogue, (fixed, fixed_sep), (moving, moving_sep),
-              (ids, names, e_flux), cfg)
+              (ids, names, e_ra, e_dec, e_flux), cfg)
     return {k: v.astype(str) if v.dtype == object else v for k, v in out.items()}
 
 
@@ -129,12 +131,13 @@ def _fill(out, flux, radius, catalogue, fixed_match, moving_match, objects, cfg)
     """Fill ``out`` (the columns of :func:`crossmatch`) measurement by measurement."""
     fixed, fixed_sep = fixed_match
     moving, moving_sep = moving_match
-    ids, names, e_flux = objects
+    ids, names, e_ra, e_dec, e_flux = objects
     for i in range(len(flux)):
         is_sso = moving_sep[i] <= radius[i] and moving_sep[i] < fixed_sep[i]
         if is_sso:
             k = moving[i]
             out["cat_source_id"][i], out["cat_source_name"][i] = ids[k], names[k]
+            out["cat_ra"][i], out["cat_dec"][i] = np.degrees([e_ra[k, i], e_dec[k, i]])
             out["cat_separation"][i] = moving_sep[i] / ARCMIN
             out["cat_flux_ratio"][i] = flux[i] / e_flux[k, i]
             out["cat_class"][i] = "solar_system"
@@ -142,6 +145,7 @@ def _fill(out, flux, radius, catalogue, fixed_match, moving_match, objects, cfg)
             j = fixed[i]
             out["cat_source_id"][i] = catalogue.source_id[j]
             out["cat_source_name"][i] = catalogue.name[j]
+            out["cat_ra"][i], out["cat_dec"][i] = np.degrees([catalogue.ra[j], catalogue.dec[j]])
             out["cat_separation"][i] = fixed_sep[i] / ARCMIN
             ratio = flux[i] / catalogue.flux_mjy[j]
             out["cat_flux_ratio"][i] = ratio

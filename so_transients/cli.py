@@ -17,6 +17,8 @@ User commands:
   by default, PostgreSQL by URL), idempotent ingest, association with what is stored;
 * ``alerts EVENTS -o OUT``: one alert record per new or updated event (GCN unified-schema
   JSON, optionally VOEvent 2.0), validated against the package's JSON Schema;
+* ``report EVENTS -o OUT``: a static site to vet the events: a sortable, filterable table,
+  one page per event (light curve, sky cutout, time streams), labels a person exports;
 * ``schema``: the candidate table's columns (name, step, unit, meaning) as Markdown;
 * ``demo``: the main job on built-in default data (``make demo``).
 
@@ -267,6 +269,12 @@ def _alerts(args):
     return main(args)
 
 
+def _report(args):
+    from so_transients.report.command import main
+
+    return main(args)
+
+
 def _events_check(args):
     from astropy.table import Table
 
@@ -286,7 +294,7 @@ def _train_score(args):
         ScoreTrainingConfig, markdown, run_score_training
     )
 
-    cfg = ScoreTrainingConfig.read(args.config, args.out)
+    cfg = ScoreTrainingConfig.read(args.config, args.out, args.labels)
     t0 = time.time()
     path, figures = run_score_training(cfg, progress=not args.quiet, model_out=args.model)
     print(markdown(figures))
@@ -435,6 +443,12 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         alerts_parser(p)
     p.set_defaults(func=_alerts)
 
+    p = add("report", "a static site to vet an events folder's events: table, light curves, "
+                      "sky cutouts, time streams, labels")
+    from so_transients.report.command import get_parser as report_parser   # imports little
+    report_parser(p)
+    p.set_defaults(func=_report)
+
     p = add("schema", "the candidate columns (name, step, unit, meaning)")
     p.set_defaults(func=_schema)
 
@@ -482,6 +496,9 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("config", help="training YAML (e.g. studies/configs/score_training.yaml)")
     p.add_argument("-o", "--out", help="output folder (default: the config's `output`)")
     p.add_argument("--model", help="model file to write (default: OUT/real_score.json)")
+    p.add_argument("--labels", nargs="+", default=[], metavar="CSV",
+                   help="labels a person exported from `so-transients report` pages, trained "
+                        "on beside the simulated ones")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_train_score)
     return parser

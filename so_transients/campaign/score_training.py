@@ -56,6 +56,7 @@ from so_transients.campaign.real_wafer import run_mode
 from so_transients.common.angles import ARCMIN
 from so_transients.common.bands import get_band
 from so_transients.score.model import ScoreModel
+from so_transients.score.person_labels import with_person_labels
 from so_transients.score.training import rejection, threshold_at_recall, train_model
 from so_transients.sim.config import SimConfig
 from so_transients.sim.focal_plane import tube_detectors
@@ -92,10 +93,14 @@ class ScoreTrainingConfig:
     forest: dict = field(default_factory=lambda: {"n_trees": 100, "max_depth": 8,
                                                   "min_samples_leaf": 5})
     version: str = "1"
+    labels: list = field(default_factory=list)   # vetting pages' label exports (CSV of
+    #                                   `so-transients report`): a person's labels, trained
+    #                                   on beside the simulated ones
 
     @classmethod
-    def read(cls, path, output=None):
+    def read(cls, path, output=None, labels=None):
         cfg = read_study_config(cls, path, output)
+        cfg.labels = [*cfg.labels, *(labels or [])]
         cfg.source = str(path)
         return cfg
 
@@ -294,9 +299,10 @@ def train_and_measure(cfg) -> tuple[ScoreModel, dict]:
     """The model trained on the ``train`` seeds (every candidate of the runs with the cuts
     open, with ``open_cuts``; else those the cuts passed), and its figures on the held-out
     sets: ``test`` and ``scan`` (:func:`measure`, the candidates the cuts passed) and, with
-    ``open_cuts``, ``test_open`` and ``scan_open`` (:func:`against_cuts`)."""
+    ``open_cuts``, ``test_open`` and ``scan_open`` (:func:`against_cuts`). The files of
+    ``cfg.labels`` (a person's labels from vetting pages) are trained on too."""
     variant = "open" if cfg.open_cuts else ""
-    train = read_set(cfg, "train", variant)
+    train = with_person_labels(read_set(cfg, "train", variant), cfg.labels)
     use = np.asarray(train["label"]) >= 0
     settings = {k: v for k, v in asdict(cfg).items() if k != "output"}   # a local folder
     trained = {"config": getattr(cfg, "source", ""),

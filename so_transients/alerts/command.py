@@ -13,7 +13,9 @@ import json
 import sys
 from pathlib import Path
 
-from so_transients.alerts.records import AlertsConfig, file_name, plan_alerts, read_alerts
+from so_transients.alerts.records import (
+    CUTOUT_FILES, AlertsConfig, file_name, plan_alerts, read_alerts
+)
 from so_transients.alerts.tense import TENSES, dataset_folder, event_tenses
 from so_transients.alerts.voevent import to_voevent
 from so_transients.common.tables import read_table
@@ -64,6 +66,13 @@ def run_alerts(events_folder, out, cfg: AlertsConfig, voevent=False, tense=None)
                          "so_transients): run `so-transients events` again")
     fits_path = folder / "lightcurve_fits.ecsv"
     fits = read_table(fits_path) if fits_path.is_file() else None
+    cutouts_path = folder / "cutouts.ecsv"
+    if cutouts_path.is_file():
+        cutouts = read_table(cutouts_path)
+        files = {}
+        for eid, name in zip(cutouts["event_id"], cutouts["file"]):
+            files.setdefault(int(eid), []).append(str(name))
+        events[CUTOUT_FILES] = [",".join(files.get(int(e), [])) for e in events["event_id"]]
     if tense is None:
         tenses = event_tenses(events, dataset_folder(events, events_path), cfg)
     else:

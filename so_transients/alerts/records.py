@@ -49,6 +49,9 @@ CONTAINMENT_90 = float(np.sqrt(-2 * np.log(0.1)))
 #: cross-match classes that are transients: alerted
 ALERTED_CLASSES = ("new", "catalogued_flare", "")
 #: fields that do not describe the event (compared to tell whether it changed)
+#: The column of cutout files (comma-separated) the alerts command gives each event.
+CUTOUT_FILES = "cutout_files"
+
 BOOKKEEPING = ("$schema", "alert_datetime", "alert_type", "record_number", "update_message",
                "supersedes")
 
@@ -166,6 +169,14 @@ def _crossmatch(event) -> dict:
     return out
 
 
+def _cutouts(event) -> dict:
+    """The event's sky cutouts (``cutout_files``, a column the alerts command adds from the
+    events folder's cutouts.ecsv): their files, relative to the events folder."""
+    if CUTOUT_FILES not in event.colnames or not str(event[CUTOUT_FILES]):
+        return {}
+    return {"cutouts": str(event[CUTOUT_FILES]).split(",")}
+
+
 def event_record(event, fits, tense, ident, record_number, alert_type, created,
                  supersedes=None, message=None) -> dict:
     """One alert of an event (a row of the events table; ``fits``: the lightcurve_fits table
@@ -193,6 +204,7 @@ def event_record(event, fits, tense, ident, record_number, alert_type, created,
         "obs_ids": _split(event["obs_ids"]), "so_event_id": str(event["event_uuid"]),
         "so_source_id": str(event["source_uuid"]),
         **_spectral_index(event), **_duration(event, fits), **_crossmatch(event),
+        **_cutouts(event),
     }
     far = float(far_hz(event))
     if np.isfinite(far):

@@ -13,7 +13,7 @@ from astropy.table import Table
 
 from so_transients.alerts.command import get_parser, main, run_alerts, write_alerts
 from so_transients.alerts.records import (
-    CONTAINMENT_90, AlertsConfig, load_schema, plan_alerts, read_alerts, validate
+    CONTAINMENT_90, CUTOUT_FILES, AlertsConfig, load_schema, plan_alerts, read_alerts, validate
 )
 from so_transients.alerts.tense import event_tenses
 from so_transients.alerts.voevent import NS, to_voevent
@@ -60,8 +60,13 @@ def later_table():
 
 def records_of_every_kind(folder):
     """Initial alerts (tense injection) written to ``folder``, then the later run's
-    subsequent, updated and retracted ones (tense current): every record."""
-    first = plan(events_table(), tense="injection")
+    subsequent, updated and retracted ones (tense current): every record. The new flare's
+    records name its cutouts, as the alerts command adds them from cutouts.ecsv."""
+    events = events_table()
+    files = "cutouts/event_0000_f090.fits,cutouts/event_0000_f150.fits"
+    events[CUTOUT_FILES] = [files, "", "", ""]
+    first = plan(events, tense="injection")
+    assert first[0]["cutouts"] == files.split(",") and "cutouts" not in first[1]
     write_alerts(first, folder)
     records = first + plan(later_table(), read_alerts(folder), tense="current")
     assert {r["alert_type"] for r in records} >= {"initial", "subsequent", "retraction"}

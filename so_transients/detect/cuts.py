@@ -33,7 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from so_transients.common import candidates
-from so_transients.common.angles import ARCMIN, sky_separation
+from so_transients.common.angles import ARCMIN
+from so_transients.common.sky_match import within_radius
 from so_transients.detect.find import FindConfig
 from so_transients.common.robust import mad_std
 from so_transients.common.step_config import positive, share
@@ -94,10 +95,7 @@ def dominant_orientation_fraction(gamma):
 
 def near_known_source(ra, dec, known_ra, known_dec, radius):
     """True where (ra, dec) lies within ``radius`` of any known source (all radians)."""
-    if len(known_ra) == 0 or len(ra) == 0:
-        return np.zeros(len(ra), bool)
-    return (sky_separation(ra[:, None], dec[:, None], known_ra[None], known_dec[None])
-            <= radius).any(axis=1)
+    return within_radius(ra, dec, known_ra, known_dec, radius)
 
 
 def per_detector_peaks(hits, cand):

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from so_transients.common.angles import ARCMIN, sky_separation
+from so_transients.common.sky_match import nearest_on_sky
 from so_transients.common.step_config import positive
 from so_transients.sources.catalog import Catalogue, Ephemerides
 
@@ -87,8 +88,8 @@ def _nearest(ra, dec, cat_ra, cat_dec):
     if not len(cat_ra):
         return np.full(len(ra), -1), np.full(len(ra), np.inf)
     cat_ra, cat_dec = np.asarray(cat_ra), np.asarray(cat_dec)
-    if cat_ra.ndim == 1:
-        cat_ra, cat_dec = cat_ra[:, None], cat_dec[:, None]
+    if cat_ra.ndim == 1:    # fixed positions: astropy's k-d tree
+        return nearest_on_sky(ra, dec, cat_ra, cat_dec)
     sep = np.nan_to_num(sky_separation(ra[None], dec[None], cat_ra, cat_dec), nan=np.inf)
     best = np.argmin(sep, axis=0)
     return best, sep[best, np.arange(len(ra))]

@@ -31,7 +31,12 @@ def get_parser(parser=None):
     parser.add_argument("--min-snr", type=float, default=defaults.min_snr,
                         help=f"alert events with at least this S/N (default {defaults.min_snr})")
     parser.add_argument("--max-far-hz", type=float, default=defaults.max_far_hz,
-                        help="and a false-alarm rate at most this (Hz; default: no cut)")
+                        help="and an instrument-level false-alarm rate at most this (Hz; "
+                             "default: no cut)")
+    parser.add_argument("--wafer-bands", type=int, default=defaults.wafer_bands,
+                        help="wafer-bands searched at once: far per wafer-band times this is "
+                             f"the instrument's far the alerts carry (default {defaults.wafer_bands}, "
+                             "the LAT)")
     parser.add_argument("--voevent", action="store_true", help="also write VOEvent 2.0 XML")
     parser.add_argument("--tense", choices=TENSES, default=None,
                         help="every alert's tense (default: from the events' dataset)")
@@ -85,7 +90,8 @@ def run_alerts(events_folder, out, cfg: AlertsConfig, voevent=False, tense=None)
 
 def main(args) -> int:
     """Exit status 0; a ValueError names the file and what is wrong."""
-    cfg = AlertsConfig(min_snr=args.min_snr, max_far_hz=args.max_far_hz)
+    cfg = AlertsConfig(min_snr=args.min_snr, max_far_hz=args.max_far_hz,
+                       wafer_bands=args.wafer_bands)
     records = run_alerts(args.events, args.out, cfg, args.voevent, args.tense)
     print(f"{len(records)} alert(s) written to {args.out}")
     for r in records:

@@ -3,8 +3,9 @@
 The record's JSON Schema is ``alert.schema.json`` beside this module (:func:`load_schema`);
 every record made here is validated against it before it is returned. Field names and units
 follow nasa-gcn/gcn-schema v7.2.1 (``gcn/notices/core``): ``alert_tense``, ``alert_type``,
-``trigger_time`` (ISO UTC), ``ra``, ``dec``, ``ra_dec_error`` (deg), ``far`` (Hz),
-``flux_density`` in erg/cm2/s/Hz (1 mJy = 1e-26 erg/cm2/s/Hz) with the value in mJy beside it.
+``trigger_time`` (ISO UTC), ``ra``, ``dec``, ``ra_dec_error`` (deg), ``far`` (Hz, for the
+whole instrument, as GCN means it: the events' rate per wafer-band times the
+``wafer_bands`` searched at once; the per-wafer-band rate beside it), ``flux_density`` in erg/cm2/s/Hz (1 mJy = 1e-26 erg/cm2/s/Hz) with the value in mJy beside it.
 
 An alert's history is the folder it is written to: each alert is one JSON file
 ``<id>-<record_number>.json``; a new run over a later events table reads the folder and, for
@@ -66,12 +67,15 @@ class AlertsConfig:
     #                                      continues that alert
     injection_radius_arcmin: float = 0.5   # simulations: an event this close to an injected flare
     injection_pad_s: float = 5.0         # ... within its active window padded by this is an injection
+    wafer_bands: int = 36                # wafer-bands searched at once: an event's far per
+    #                                      wafer-band times this is the instrument's (the LAT:
+    #                                      6 tubes x 3 wafers x 2 bands)
 
     def __post_init__(self):
         positive("alerts", min_snr=self.min_snr, max_far_hz=self.max_far_hz,
                  match_radius_arcmin=self.match_radius_arcmin, max_gap_s=self.max_gap_s,
                  injection_radius_arcmin=self.injection_radius_arcmin,
-                 injection_pad_s=self.injection_pad_s)
+                 injection_pad_s=self.injection_pad_s, wafer_bands=self.wafer_bands)
 
 
 @lru_cache(maxsize=1)
@@ -115,11 +119,13 @@ def significance(events: Table) -> np.ndarray:
     return np.where(np.isfinite(joint), joint, peak)
 
 
-def far_hz(events: Table) -> np.ndarray:
-    """The events' ``far`` (per wafer-band-hour) in Hz; NaN where not measured."""
+def far_hz(events: Table, wafer_bands=1) -> np.ndarray:
+    """The events' false-alarm rate in Hz: their ``far`` (per wafer-band-hour) times
+    ``wafer_bands`` (the instrument's rate with the number it searches); NaN where not
+    measured."""
     if "far" not in events.colnames:
         return np.full(np.shape(events["ra"]), np.nan)
-    return np.asarray(events["far"], float) / 3600.0
+    return np.asarray(events["far"], float) / 3600.0 * wafer_bands
 
 
 def alert_id(event) -> str:
@@ -178,9 +184,9 @@ def _cutouts(event) -> dict:
 
 
 def event_record(event, fits, tense, ident, record_number, alert_type, created,
-                 supersedes=None, message=None) -> dict:
+                 supersedes=None, message=None, wafer_bands=AlertsConfig.wafer_bands) -> dict:
     """One alert of an event (a row of the events table; ``fits``: the lightcurve_fits table
-    or None)."""
+    or None; ``wafer_bands``: the instrument's, for its ``far``)."""
     band = str(event["peak_band"])
     flux, flux_err = float(event["peak_flux"]), float(event["peak_flux_err"])
     record = {
@@ -206,9 +212,11 @@ def event_record(event, fits, tense, ident, record_number, alert_type, created,
         **_spectral_index(event), **_duration(event, fits), **_crossmatch(event),
         **_cutouts(event),
     }
-    far = float(far_hz(event))
+    far = float(far_hz(event, wafer_bands))
     if np.isfinite(far):
         record["far"] = float(far)
+        record["far_per_wafer_band"] = float(far_hz(event))
+        record["far_wafer_bands"] = int(wafer_bands)
         record["far_is_upper_limit"] = bool(event["far_is_limit"]) \
             if "far_is_limit" in event.colnames else False
     if supersedes:
@@ -282,7 +290,7 @@ def qualifies(events: Table, cfg: AlertsConfig) -> np.ndarray:
     """Events that are alerted: S/N, false-alarm rate and cross-match class."""
     ok = significance(events) >= cfg.min_snr
     if cfg.max_far_hz is not None:
-        far = far_hz(events)
+        far = far_hz(events, cfg.wafer_bands)
         ok &= np.isfinite(far) & (far <= cfg.max_far_hz)
     if "cat_class" in events.colnames:
         ok &= np.isin(np.asarray(events["cat_class"], str), ALERTED_CLASSES)
@@ -302,7 +310,8 @@ def _why_not(event, cfg: AlertsConfig) -> str:
     snr = float(significance(event))
     if snr < cfg.min_snr:
         return f"its S/N is now {snr:.1f}, below {cfg.min_snr:g}"
-    return f"its false-alarm rate is now {float(far_hz(event)):.3g} Hz, above {cfg.max_far_hz:g}"
+    far = float(far_hz(event, cfg.wafer_bands))
+    return f"its false-alarm rate is now {far:.3g} Hz, above {cfg.max_far_hz:g}"
 
 
 def changes(old: dict, new: dict) -> list:
@@ -326,7 +335,7 @@ def plan_alerts(events: Table, fits: Table | None, tenses, history: dict, covere
         if int(i) in continued:
             continue
         record = event_record(events[i], fits, tenses[i], alert_id(events[i]), 1, "initial",
-                              created)
+                              created, wafer_bands=cfg.wafer_bands)
         if record["id"] in history:
             raise ValueError(f"event {events['event_id'][i]} ({events['name'][i]}) has the id "
                              f"{record['id']} of an earlier alert it does not continue")
@@ -337,7 +346,8 @@ def plan_alerts(events: Table, fits: Table | None, tenses, history: dict, covere
         if ident in matched:
             i = matched[ident]
             if ok[i]:
-                out.extend(_continuation(events[i], fits, tenses[i], records, created))
+                out.extend(_continuation(events[i], fits, tenses[i], records, created,
+                                         cfg.wafer_bands))
             elif last["alert_type"] != "retraction":
                 out.append(retraction_record(last, _why_not(events[i], cfg), created))
         elif last["alert_type"] != "retraction":
@@ -349,13 +359,13 @@ def plan_alerts(events: Table, fits: Table | None, tenses, history: dict, covere
     return out
 
 
-def _continuation(event, fits, tense, records, created) -> list:
+def _continuation(event, fits, tense, records, created, wafer_bands) -> list:
     """The subsequent or update alert of an event that continues ``records`` (none when
     nothing changed)."""
     last = records[-1]
     placed = [r for r in records if "ra" in r][-1]
     new = event_record(event, fits, tense, last["id"], last["record_number"] + 1, "initial",
-                       created)
+                       created, wafer_bands=wafer_bands)
     changed = changes(placed, new)
     if last["alert_type"] != "retraction" and not changed:
         return []
@@ -368,4 +378,5 @@ def _continuation(event, fits, tense, records, created) -> list:
     else:
         kind, message = "update", f"re-analysis changed {', '.join(changed)}"
     return [event_record(event, fits, tense, last["id"], last["record_number"] + 1, kind,
-                         created, supersedes=file_name(last), message=message)]
+                         created, supersedes=file_name(last), message=message,
+                         wafer_bands=wafer_bands)]

@@ -98,7 +98,9 @@ def test_initial_alerts_of_the_transients_above_threshold():
     assert new["spectral_band"][0] < 93_000.0 < new["spectral_band"][1]
     assert new["ra_dec_error"] == pytest.approx(CONTAINMENT_90 * 3.0 / 3600.0)
     assert CONTAINMENT_90 == pytest.approx(2.1460, abs=1e-4)   # 90 % of a 2-D Gaussian
-    assert new["far"] == pytest.approx(1e-3) and new["snr"] == 12.0
+    # far 3.6 per wafer-band-hour: 1e-3 Hz per wafer-band, 36 times that for the LAT
+    assert new["far_per_wafer_band"] == pytest.approx(1e-3) and new["far_wafer_bands"] == 36
+    assert new["far"] == pytest.approx(36e-3) and new["snr"] == 12.0
     assert new["spectral_index"] == -1.0 and new["spectral_index_bands"] == "f090/f150"
     assert new["duration"] == 30.0 and new["duration_error"] == pytest.approx(5.0)
     assert new["trigger_time"].endswith("Z") and new["detection_span"] == 60.0
@@ -147,9 +149,12 @@ def test_an_event_gone_is_retracted_only_when_its_observations_were_reanalysed(t
 
 def test_far_and_snr_thresholds():
     assert [r["so_event_id"] for r in plan(events_table(), cfg=AlertsConfig(min_snr=10))] == UUIDS[:1]
-    strict = AlertsConfig(max_far_hz=1e-4)              # event 0 has far 1e-3 Hz, 1 none
-    assert plan(events_table(), cfg=strict) == []
-    assert len(plan(events_table(), cfg=AlertsConfig(max_far_hz=1e-2))) == 1
+    # event 0: 1e-3 Hz per wafer-band, 0.036 Hz for the LAT's 36; event 1 none
+    assert plan(events_table(), cfg=AlertsConfig(max_far_hz=1e-2)) == []
+    assert len(plan(events_table(), cfg=AlertsConfig(max_far_hz=0.04))) == 1
+    one = AlertsConfig(max_far_hz=1e-2, wafer_bands=1)   # one wafer-band searched
+    (record,) = plan(events_table(), cfg=one)
+    assert record["far"] == pytest.approx(1e-3) and record["far_wafer_bands"] == 1
 
 
 def test_schema_refuses_broken_records():
@@ -280,3 +285,9 @@ def test_an_events_table_without_uuids_is_refused_by_name(tmp_path):
     old.write(folder / "events.ecsv")
     with pytest.raises(ValueError, match=r"events\.ecsv: no event_uuid, source_uuid .*again"):
         run_alerts(folder, tmp_path / "alerts", AlertsConfig(), tense="test")
+
+
+def test_the_default_trials_factor_is_the_lats_wafer_bands():
+    from so_transients.sim.focal_plane import lat_layout
+
+    assert AlertsConfig().wafer_bands == sum(len(w) * len(b) for _, _, w, b in lat_layout())

@@ -5,7 +5,8 @@ every record made here is validated against it before it is returned. Field name
 follow nasa-gcn/gcn-schema v7.2.1 (``gcn/notices/core``): ``alert_tense``, ``alert_type``,
 ``trigger_time`` (ISO UTC), ``ra``, ``dec``, ``ra_dec_error`` (deg), ``far`` (Hz, for the
 whole instrument, as GCN means it: the events' rate per wafer-band times the
-``wafer_bands`` searched at once; the per-wafer-band rate beside it), ``flux_density`` in erg/cm2/s/Hz (1 mJy = 1e-26 erg/cm2/s/Hz) with the value in mJy beside it.
+``wafer_bands`` searched at once; the per-wafer-band rate beside it), ``flux_density`` in
+erg/cm2/s/Hz (1 mJy = 1e-26 erg/cm2/s/Hz) with the value in mJy beside it.
 
 An alert's history is the folder it is written to: each alert is one JSON file
 ``<id>-<record_number>.json``; a new run over a later events table reads the folder and, for

@@ -262,9 +262,10 @@ def _ctime(iso) -> float:
 
 
 def match_previous(events: Table, history: dict, cfg: AlertsConfig) -> dict:
-    """``{alert id: event row index}``: each earlier alert continued by the nearest event
-    within ``match_radius_arcmin`` whose detections are within ``max_gap_s`` of its own;
-    an event continues at most one alert."""
+    """``{alert id: event row index}``: each earlier alert continued by an event within
+    ``match_radius_arcmin`` of its position: the same source. An event whose detections are
+    within ``max_gap_s`` of the alert's is preferred (the same flare), then the nearest; an
+    event continues at most one alert."""
     pairs = []
     for ident, records in history.items():
         placed = [r for r in records if "ra" in r]
@@ -274,17 +275,23 @@ def match_previous(events: Table, history: dict, cfg: AlertsConfig) -> dict:
         sep = sky_separation(np.radians(np.asarray(events["ra"], float)),
                              np.radians(np.asarray(events["dec"], float)),
                              last["ra"] * DEG, last["dec"] * DEG)
-        t0, t1 = _ctime(last["trigger_time"]), _ctime(last["last_detection_time"])
-        near_time = ((np.asarray(events["t_last"]) >= t0 - cfg.max_gap_s)
-                     & (np.asarray(events["t_first"]) <= t1 + cfg.max_gap_s))
-        for i in np.flatnonzero((sep <= cfg.match_radius_arcmin * ARCMIN) & near_time):
-            pairs.append((sep[i], ident, int(i)))
+        near_time = same_flare(events, last, cfg)
+        for i in np.flatnonzero(sep <= cfg.match_radius_arcmin * ARCMIN):
+            pairs.append((not near_time[i], sep[i], ident, int(i)))
     matched, used = {}, set()
-    for _, ident, i in sorted(pairs):
+    for _, _, ident, i in sorted(pairs):
         if ident not in matched and i not in used:
             matched[ident] = i
             used.add(i)
     return matched
+
+
+def same_flare(events, record, cfg: AlertsConfig) -> np.ndarray:
+    """Whether each event's detections are within ``max_gap_s`` of those of an alert
+    ``record``: the same flare, where a later one of the same source is not."""
+    t0, t1 = _ctime(record["trigger_time"]), _ctime(record["last_detection_time"])
+    return ((np.atleast_1d(events["t_last"]) >= t0 - cfg.max_gap_s)
+            & (np.atleast_1d(events["t_first"]) <= t1 + cfg.max_gap_s))
 
 
 def qualifies(events: Table, cfg: AlertsConfig) -> np.ndarray:
@@ -347,8 +354,7 @@ def plan_alerts(events: Table, fits: Table | None, tenses, history: dict, covere
         if ident in matched:
             i = matched[ident]
             if ok[i]:
-                out.extend(_continuation(events[i], fits, tenses[i], records, created,
-                                         cfg.wafer_bands))
+                out.extend(_continuation(events[i], fits, tenses[i], records, created, cfg))
             elif last["alert_type"] != "retraction":
                 out.append(retraction_record(last, _why_not(events[i], cfg), created))
         elif last["alert_type"] != "retraction":
@@ -360,13 +366,22 @@ def plan_alerts(events: Table, fits: Table | None, tenses, history: dict, covere
     return out
 
 
-def _continuation(event, fits, tense, records, created, wafer_bands) -> list:
+def _continuation(event, fits, tense, records, created, cfg: AlertsConfig) -> list:
     """The subsequent or update alert of an event that continues ``records`` (none when
-    nothing changed)."""
+    nothing changed). Its ``so_source_id`` is the first alert's: one source id per position
+    across observations, whichever run's events table it comes from."""
     last = records[-1]
-    placed = [r for r in records if "ra" in r][-1]
-    new = event_record(event, fits, tense, last["id"], last["record_number"] + 1, "initial",
-                       created, wafer_bands=wafer_bands)
+    placed = [r for r in records if "ra" in r]
+    source = placed[0]["so_source_id"]
+    placed = placed[-1]
+
+    def record(kind, **extra):
+        new = event_record(event, fits, tense, last["id"], last["record_number"] + 1, kind,
+                           created, wafer_bands=cfg.wafer_bands, **extra)
+        new["so_source_id"] = source
+        return new
+
+    new = record("initial")
     changed = changes(placed, new)
     if last["alert_type"] != "retraction" and not changed:
         return []
@@ -374,10 +389,13 @@ def _continuation(event, fits, tense, records, created, wafer_bands) -> list:
     if last["alert_type"] == "retraction":
         kind, message = "update", "alerted again after its retraction: it qualifies in a " \
                                   "later analysis"
+    elif not bool(same_flare(event, placed, cfg)[0]):
+        gap = float(event["t_first"]) - _ctime(placed["last_detection_time"])
+        kind, message = "subsequent", (f"a new flare of the same source, {gap / 3600:.1f} h "
+                                       f"after its last alerted detection"
+                                       + (f", in {', '.join(seen_again)}" if seen_again else ""))
     elif seen_again:
         kind, message = "subsequent", f"seen again in {', '.join(seen_again)}"
     else:
         kind, message = "update", f"re-analysis changed {', '.join(changed)}"
-    return [event_record(event, fits, tense, last["id"], last["record_number"] + 1, kind,
-                         created, supersedes=file_name(last), message=message,
-                         wafer_bands=wafer_bands)]
+    return [record(kind, supersedes=file_name(last), message=message)]

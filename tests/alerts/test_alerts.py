@@ -128,6 +128,21 @@ def test_followups_and_retractions(tmp_path):
     assert "catalogued source at its catalogue flux" in retracted[0]["update_message"]
     for r in records.values():
         VALIDATOR.validate(r)
+    # a new flare of the same source 3 h later, in another run (its own source UUID): the
+    # alert of that source goes on, with the first alert's source id
+    again = events_table(obs_ids=["obs_C"] + ["obs_A"] * 3, t_first=[T0 + 3 * 3600.0] + [
+        T0 + 100, T0 + 200, T0 + 300], t_last=[T0 + 3 * 3600.0 + 30] + [T0 + 100, T0 + 200,
+                                                                         T0 + 300],
+        source_uuid=["e" + UUIDS[0][1:]] + ["f" + u[1:] for u in UUIDS[1:]],
+        event_uuid=["d" + UUIDS[0][1:]] + UUIDS[1:])
+    (flare,) = plan(again, history)
+    first = history[flare["id"]][0]
+    assert flare["alert_type"] == "subsequent" and flare["record_number"] == 2
+    assert flare["so_source_id"] == first["so_source_id"] != str(again["source_uuid"][0])
+    assert flare["so_event_id"] == str(again["event_uuid"][0])
+    assert flare["update_message"] == ("a new flare of the same source, 3.0 h after its last "
+                                       "alerted detection, in obs_C")
+    VALIDATOR.validate(flare)
     # a re-analysis of the same observation changing the flux: an update
     changed = events_table(peak_flux=[950.0, 800.0, 2000.0, 300.0])
     (update,) = plan(changed, history)

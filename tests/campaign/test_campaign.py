@@ -131,6 +131,10 @@ def test_fast_path_agrees_with_the_full_site_pipeline_flare_by_flare(quick):
     # 15 flares this fails only when 8 or more discordant flares all go one way; here 3, 0).
     b, c = int(np.sum(fast_hit & ~full_hit)), int(np.sum(full_hit & ~fast_hit))
     assert b + c == 0 or binomtest(b, b + c, 0.5).pvalue > 0.01, (b, c)
+    # ... as the campaign's table reports it
+    assert (check["fast_only"][0], check["full_only"][0]) == (b, c)
+    assert check["mcnemar_p"][0] == pytest.approx(binomtest(b, b + c, 0.5).pvalue if b + c
+                                                  else 1.0)
     # Flux, per flare detected by both (paired by peak time): the full path's is the fast
     # path's less what the shipped pca_filter takes of the source (the fast path injects
     # after it): ratio 1 - L with 0 <= L <= PCA_LOSS. The two fits share their noise, so

@@ -12,11 +12,11 @@ export OMP_WAIT_POLICY ?= passive
 # configuration names but lacks are noise here)
 PIP    := $(PY) -m pip install -qq --disable-pip-version-check
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
 	@echo "installing the environment in $(VENV) (first use only)"
 	@$(PIP) --upgrade pip
-	@$(PIP) -e '.[test,docs]'
+	@$(PIP) -e '.[test,docs]' -c constraints.txt   # CI's exact set (pyproject.toml: ranges)
 	@touch $(STAMP)
 
 install: $(STAMP)

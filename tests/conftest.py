@@ -116,3 +116,21 @@ def bright_source_dataset(tmp_path_factory):
                                             "flux_mjy": 50000.0}]},
                    flares={"list": [{"at_detector": "w16_f090_p100A", "at_time": 60.0,
                                      "t_peak": 60.0, "s_peak_mjy": 20000.0, "t_rise": 2.0}]})
+
+
+def add_socat_asteroid(client, name, mpc_id, points, flux=None):
+    """An asteroid with ephemeris points ``[(ctime, ICRS), ...]`` written with socat's own DB
+    ``client``, in the API of the socat installed: 0.1 (socat's main: the client's methods,
+    times as astropy Times) or 0.0.2 (its sub-clients, ctimes). Returns its sso_id."""
+    from astropy.time import Time
+
+    if hasattr(client, "create_sso"):
+        sso = client.create_sso(name=name, MPC_id=mpc_id)
+        create, when = client.create_ephem, lambda t: Time(t, format="unix")
+    else:
+        sso = client.sso.create_sso(name=name, MPC_id=mpc_id)
+        create, when = client.ephem.create_ephem, lambda t: t
+    for t, position in points:
+        create(sso_id=sso.sso_id, MPC_id=mpc_id, name=name, time=when(t), position=position,
+               flux=flux)
+    return sso.sso_id

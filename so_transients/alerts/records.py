@@ -169,7 +169,7 @@ def _crossmatch(event) -> dict:
     out = dict(crossmatch_class=cls)
     if cls == "catalogued_flare":
         out.update(catalogue=str(event["catalogue"]), known_source=str(event["cat_source_name"]),
-                   known_source_id=int(event["cat_source_id"]),
+                   known_source_id=str(event["cat_source_id"]),
                    known_source_separation=float(event["cat_separation"]))
         if _finite(event["cat_flux_ratio"]):
             out["flux_ratio"] = float(event["cat_flux_ratio"])

@@ -171,6 +171,22 @@ def _create_tables(conn):
     METADATA.create_all(conn)
 
 
+def _catalogue_ids_as_text(conn):
+    """Version 3: the cross-matched source's id as text ('' for none, was -1). SQLite keeps
+    any value in any column: its rows are rewritten only."""
+    stored = {c["name"]: c["type"] for c in sa.inspect(conn).get_columns("events")}
+    if "cat_source_id" not in stored:
+        return
+    if conn.dialect.name == "postgresql":
+        if isinstance(stored["cat_source_id"], sa.String):
+            return            # made by this version's create_all: text already
+        conn.exec_driver_sql("ALTER TABLE events ALTER COLUMN cat_source_id TYPE text USING "
+                             "CASE WHEN cat_source_id = -1 THEN '' "
+                             "ELSE cat_source_id::text END")
+    else:
+        conn.exec_driver_sql("UPDATE events SET cat_source_id = '' WHERE cat_source_id = -1")
+
+
 def _create_cutouts(conn):
     """Version 2: the events' sky cutouts."""
     CUTOUTS.create(conn, checkfirst=True)
@@ -181,6 +197,8 @@ MIGRATIONS = (
     (1, "observations, sources, events, detections, light-curve points and fits",
      _create_tables),
     (2, "cutouts: each event's sky cutout per band, made from the TOD", _create_cutouts),
+    (3, "events.cat_source_id as text: socat's ids are UUIDs since socat 0.1",
+     _catalogue_ids_as_text),
 )
 VERSION = MIGRATIONS[-1][0]
 

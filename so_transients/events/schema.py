@@ -64,8 +64,9 @@ EVENTS = (
                                              "resolution), not a count"),
     Column("catalogue", "str", None, _E, "catalogue of the cross-matched source (the events "
                                          "config's `catalogue`), '' if none matched"),
-    Column("cat_source_id", "int", None, _E, "its id there (socat source_id, or sso_id of a "
-                                             "solar-system object), -1 if none"),
+    Column("cat_source_id", "str", None, _E, "its id there (socat source_id, or sso_id of a "
+                                             "solar-system object: a UUID in socat 0.1, an "
+                                             "integer in 0.0.2 or a file), '' if none"),
     Column("cat_source_name", "str", None, _E, "its name there"),
     Column("cat_ra", "float", "deg", _E, "its RA (a solar-system object's at the event)"),
     Column("cat_dec", "float", "deg", _E, "its Dec"),

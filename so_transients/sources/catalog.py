@@ -15,14 +15,18 @@ A catalogue is named by one string, the ``catalogue`` / ``known_sources`` config
   unless the column carries a unit).
 
 socat is an optional dependency (``pip install so_transients[catalog]``); it is imported only
-when a socat URL is read. Fixed sources are read with socat's DB client
-(``socat.client.db.Client.get_box`` over the whole sky); the ephemeris points of its
-solar-system objects with its table models (the 0.0.2 client reads them only one by one).
+when a socat URL is read. Both socat's released API (0.0.2: integer ids, ``Client.get_box``,
+ephemeris times in ctime) and its current one (0.1: UUIDs, ``Client.get_box_fixed``, ephemeris
+times as datetimes) are read. Fixed sources are read with socat's DB client over the whole
+sky; the ephemeris points of its solar-system objects with its table models, over the
+observations' times (the 0.0.2 client reads them only one by one). Ids are kept as strings
+(a socat UUID, or the integer of 0.0.2 or of a file's ``source_id``; '' without one).
 """
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -40,8 +44,9 @@ DATABASE_SCHEMES = ("socat:", "sqlite:", "sqlite+", "postgresql:", "postgresql+"
 
 @dataclass
 class Catalogue:
-    """Fixed sources: ``ra``, ``dec`` (radians), ``name``, ``source_id`` (int, -1 when the file
-    has none), ``flux_mjy`` (NaN when unknown); ``label`` names the catalogue in tables."""
+    """Fixed sources: ``ra``, ``dec`` (radians), ``name``, ``source_id`` (str: socat's UUID or
+    integer id, '' when the file has none), ``flux_mjy`` (NaN when unknown); ``label`` names
+    the catalogue in tables."""
 
     label: str
     ra: np.ndarray
@@ -56,8 +61,8 @@ class Catalogue:
 
 @dataclass
 class Ephemerides:
-    """Ephemeris points of solar-system objects, one row per object and time: ``sso_id``,
-    ``name``, ``time`` (ctime, s), ``ra``, ``dec`` (radians), ``flux_mjy`` (NaN when unknown)."""
+    """Ephemeris points of solar-system objects, one row per object and time: ``sso_id``
+    (str), ``name``, ``time`` (ctime, s), ``ra``, ``dec`` (radians), ``flux_mjy`` (NaN when unknown)."""
 
     sso_id: np.ndarray
     name: np.ndarray
@@ -72,7 +77,7 @@ class Ephemerides:
 
 def empty_ephemerides() -> Ephemerides:
     """No solar-system object (a catalogue file has none)."""
-    return Ephemerides(np.zeros(0, int), np.zeros(0, str), *np.zeros((4, 0)))
+    return Ephemerides(np.zeros(0, str), np.zeros(0, str), *np.zeros((4, 0)))
 
 
 def is_database_url(spec) -> bool:
@@ -131,9 +136,11 @@ def read_socat(spec) -> Catalogue:
 
     client = Client(session_factory=_session_factory(spec))
     # the whole sky (an RA of 360 deg would wrap to 0: the box ends just below it; socat
-    # stores positions as ICRS, whose RA is below 360 deg)
-    sources = client.get_box(lower_left=ICRS(ra=0 * u.deg, dec=-90 * u.deg),
-                             upper_right=ICRS(ra=np.nextafter(360.0, 0) * u.deg, dec=90 * u.deg))
+    # stores positions as ICRS, whose RA is below 360 deg); socat 0.1's get_box also wants
+    # times (for its moving objects): its fixed sources are get_box_fixed
+    box = getattr(client, "get_box_fixed", None) or client.get_box
+    sources = box(lower_left=ICRS(ra=0 * u.deg, dec=-90 * u.deg),
+                  upper_right=ICRS(ra=np.nextafter(360.0, 0) * u.deg, dec=90 * u.deg))
     if not sources:
         log.warning("catalogue %s holds no fixed source", redacted(spec))
     return Catalogue(
@@ -141,8 +148,20 @@ def read_socat(spec) -> Catalogue:
         ra=np.array([s.position.ra.to_value(u.rad) for s in sources], float),
         dec=np.array([s.position.dec.to_value(u.rad) for s in sources], float),
         name=np.array([s.name or "" for s in sources], str),
-        source_id=np.array([s.source_id for s in sources], np.int64),
+        source_id=np.array([str(s.source_id) for s in sources], str),
         flux_mjy=np.array([_flux_mjy(s.flux) for s in sources], float))
+
+
+def _time_is_datetime(table) -> bool:
+    """Whether socat's ephemeris table keeps times as datetimes (0.1) or ctimes (0.0.2)."""
+    import sqlalchemy as sa
+
+    return isinstance(table.__table__.c.time.type, sa.DateTime)
+
+
+def _ctime(when: datetime) -> float:
+    """A socat datetime (UTC; naive as SQLite returns it) as ctime."""
+    return (when if when.tzinfo else when.replace(tzinfo=timezone.utc)).timestamp()
 
 
 def read_socat_ephemerides(spec, t_min, t_max, pad=86400.0) -> Ephemerides:
@@ -153,6 +172,9 @@ def read_socat_ephemerides(spec, t_min, t_max, pad=86400.0) -> Ephemerides:
     from sqlmodel import select
 
     lo, hi = int(np.floor(t_min - pad)), int(np.ceil(t_max + pad))
+    as_datetime = _time_is_datetime(RegisteredMovingSourceTable)
+    if as_datetime:          # socat 0.1 stores UTC datetimes, 0.0.2 ctimes
+        lo, hi = (datetime.fromtimestamp(t, timezone.utc) for t in (lo, hi))
     with _session_factory(spec)() as session:
         rows = session.execute(
             select(RegisteredMovingSourceTable, SolarSystemObjectTable.name)
@@ -162,9 +184,9 @@ def read_socat_ephemerides(spec, t_min, t_max, pad=86400.0) -> Ephemerides:
             .order_by(RegisteredMovingSourceTable.sso_id, RegisteredMovingSourceTable.time)
         ).all()
     return Ephemerides(
-        sso_id=np.array([r[0].sso_id for r in rows], np.int64),
+        sso_id=np.array([str(r[0].sso_id) for r in rows], str),
         name=np.array([r[1] for r in rows], str),
-        time=np.array([r[0].time for r in rows], float),
+        time=np.array([_ctime(r[0].time) if as_datetime else r[0].time for r in rows], float),
         ra=np.radians(np.array([r[0].ra_deg for r in rows], float)),
         dec=np.radians(np.array([r[0].dec_deg for r in rows], float)),
         flux_mjy=np.array([np.nan if r[0].flux_mJy is None else r[0].flux_mJy for r in rows],
@@ -271,8 +293,8 @@ def read_table_catalogue(path, unit="deg", owner="catalogue", unit_key="unit") -
     return Catalogue(
         label=str(path), ra=ra, dec=dec,
         name=np.asarray(table["name"], str) if "name" in table.colnames else np.full(n, ""),
-        source_id=(np.asarray(table["source_id"], np.int64) if "source_id" in table.colnames
-                   else np.full(n, -1, np.int64)),
+        source_id=(np.asarray(table["source_id"]).astype(str) if "source_id" in table.colnames
+                   else np.full(n, "")),
         flux_mjy=(_column(table, "flux", "mJy", u.mJy, path) if "flux" in table.colnames
                   else np.full(n, np.nan)))
 

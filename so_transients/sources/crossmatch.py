@@ -102,7 +102,7 @@ def crossmatch(ra, dec, flux_mjy, time, catalogue: Catalogue, ephem: Ephemerides
     ``ra``, ``dec`` in radians, ``flux_mjy`` the measured flux, ``time`` ctimes (for the
     solar-system objects). Returns columns (arrays of the measurements' length):
     ``catalogue`` (the catalogue's label, '' where nothing matched), ``cat_source_id``
-    (socat's source_id or sso_id, -1 none), ``cat_source_name``, ``cat_ra`` and ``cat_dec``
+    (socat's source_id or sso_id as a string, '' none), ``cat_source_name``, ``cat_ra`` and ``cat_dec``
     (degrees; a solar-system object's at ``time``), ``cat_separation`` (arcmin),
     ``cat_flux_ratio`` (measured / catalogued flux; NaN when the catalogue has no flux) and
     ``cat_class`` (see the module).
@@ -118,7 +118,7 @@ def crossmatch(ra, dec, flux_mjy, time, catalogue: Catalogue, ephem: Ephemerides
     else:
         ids = names = e_ra = e_dec = e_flux = None
         moving, moving_sep = np.full(n, -1), np.full(n, np.inf)
-    out = dict(catalogue=np.full(n, "", object), cat_source_id=np.full(n, -1, np.int64),
+    out = dict(catalogue=np.full(n, "", object), cat_source_id=np.full(n, "", object),
                cat_source_name=np.full(n, "", object), cat_ra=np.full(n, np.nan),
                cat_dec=np.full(n, np.nan), cat_separation=np.full(n, np.nan),
                cat_flux_ratio=np.full(n, np.nan), cat_class=np.full(n, "new", object))

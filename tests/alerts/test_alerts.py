@@ -41,7 +41,7 @@ def events_table(**changes):
         peak_flux_err=[60.0, 100.0, 100.0, 100.0], peak_band=["f090", "f090", "f090", "f150"],
         joint_snr=[12.0, np.nan, 20.0, np.nan], alpha_mf=[-1.0, np.nan, np.nan, np.nan],
         alpha_mf_err=[0.1, np.nan, np.nan, np.nan], far=[3.6, np.nan, np.nan, np.nan],
-        catalogue=["", "socat:", "socat:", ""], cat_source_id=[-1, 7, 8, -1],
+        catalogue=["", "socat:", "socat:", ""], cat_source_id=["", "7", "8", ""],
         cat_source_name=["", "QSO A", "Blazar B", ""], cat_separation=[np.nan, 0.2, 0.1, np.nan],
         cat_flux_ratio=[np.nan, 8.0, 1.0, np.nan],
         cat_class=["new", "catalogued_flare", "catalogued", "new"])

@@ -369,21 +369,32 @@ def test_undeclared_columns_are_kept_and_declared_ones_are_added(new_db, tmp_pat
         open_database(url)
 
 
-def test_a_database_of_schema_version_1_gets_the_cutouts_table(new_db):
-    """A database made before the cutouts (version 1: no such table) is brought to the
-    current version when opened for writing, its rows kept."""
+def test_a_database_of_schema_version_1_is_brought_to_the_current_one(new_db):
+    """A database as version 1 made it (no cutouts table; catalogue ids as integers, -1 for
+    none) is brought to the current version when opened for writing, its rows kept: the
+    cutouts table made, the ids text ('' for none)."""
     url = new_db()
     engine = open_database(url)
-    ingest_run(engine, night("v", T0, 1, seed=71))
+    run = night("v", T0, 1, seed=71)
+    run.events["cat_source_id"] = ["", "17"]
+    ingest_run(engine, run)
     with write_transaction(engine) as conn:
         conn.execute(schema.CUTOUTS.delete())
         schema.CUTOUTS.drop(conn)
+        if conn.dialect.name == "postgresql":
+            conn.exec_driver_sql("ALTER TABLE events ALTER COLUMN cat_source_id TYPE bigint "
+                                 "USING COALESCE(NULLIF(cat_source_id, ''), '-1')::bigint")
+        else:
+            conn.exec_driver_sql("UPDATE events SET cat_source_id = -1 "
+                                 "WHERE cat_source_id = ''")
         conn.execute(schema.SCHEMA_VERSION.delete().where(schema.SCHEMA_VERSION.c.version > 1))
         assert schema.stored_version(conn) == 1
     engine = open_database(url)
     with engine.connect() as conn:
-        assert schema.stored_version(conn) == schema.VERSION >= 2
+        assert schema.stored_version(conn) == schema.VERSION >= 3
         assert sa.inspect(conn).has_table("cutouts")
+        ids = conn.exec_driver_sql("SELECT cat_source_id FROM events ORDER BY run_event_id")
+        assert [str(v) for (v,) in ids] == ["", "17"]
     assert counts(engine)["events"] == 2 and counts(engine)["cutouts"] == 0
 
 

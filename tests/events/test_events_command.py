@@ -9,8 +9,9 @@ from so_transients.common.angles import ARCMIN
 from so_transients.common.angles import sky_separation
 from so_transients.cli import main as cli_main
 from so_transients.site.pipeline import PRODUCTION, run_site_pipeline, write_site_config
+from so_transients.sources.catalog import read_catalogue
 
-from tests.conftest import run_sim
+from tests.conftest import add_socat_asteroid, run_sim
 
 pytestmark = pytest.mark.slow   # end to end: simulates and runs the pipeline
 
@@ -198,12 +199,10 @@ def test_events_cross_matched_with_a_socat_catalogue(events_run, tmp_path):
     client = Client(db_url=f"sqlite:///{db}")
     client.create_source(position=ICRS(ra=slow["ra"] * u.rad, dec=slow["dec"] * u.rad),
                          name="Catalogued star", flux=100 * u.mJy)
-    sso = client.sso.create_sso(name="Vesta", MPC_id=4)
-    for dt in (-3600, 3600):
-        client.ephem.create_ephem(
-            sso_id=sso.sso_id, MPC_id=4, name="Vesta", time=int(round(fast["t_peak"])) + dt,
-            position=ICRS(ra=fast["ra"] * u.rad, dec=(fast["dec"] + dt / 3600 * 0.2 * np.pi / 180)
-                          * u.rad))
+    add_socat_asteroid(client, "Vesta", 4, [
+        (int(round(fast["t_peak"])) + dt,
+         ICRS(ra=fast["ra"] * u.rad, dec=(fast["dec"] + dt / 3600 * 0.2 * np.pi / 180) * u.rad))
+        for dt in (-3600, 3600)])
     copy = tmp_path / "events"
     shutil.copytree(out, copy)
     events_yaml = tmp_path / "events.yaml"
@@ -213,7 +212,9 @@ def test_events_cross_matched_with_a_socat_catalogue(events_run, tmp_path):
     events = read(copy, "events")
     flare, moving = event_of(events, truth_of(root)[0])[0], event_of(events, truth_of(root)[1])[0]
     assert flare["cat_class"] == "catalogued_flare"
-    assert flare["cat_source_name"] == "Catalogued star" and flare["cat_source_id"] == 1
+    assert flare["cat_source_name"] == "Catalogued star"
+    (star_id,) = read_catalogue(f"socat://{db}").source_id   # socat's id, as a string
+    assert flare["cat_source_id"] == star_id
     assert flare["cat_separation"] < 0.5 and flare["catalogue"] == f"socat://{db}"
     assert flare["cat_flux_ratio"] == pytest.approx(flare["peak_flux"] / 100.0)
     assert moving["cat_class"] == "solar_system" and moving["cat_source_name"] == "Vesta"

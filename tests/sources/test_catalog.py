@@ -1,5 +1,9 @@
 """Known sources from a real socat database (built with socat's own DB client) and from
-ECSV/CSV, and the flux-dependent cross-match against them."""
+ECSV/CSV, and the flux-dependent cross-match against them. The socat installed decides the
+API: 0.0.2 (the package index's) or 0.1 (socat's main branch: UUID ids, get_box_fixed,
+datetimes); both are supported and these tests run on either."""
+import uuid
+
 import numpy as np
 import pytest
 from astropy import units as u
@@ -14,7 +18,11 @@ from so_transients.sources.catalog import (
 )
 from so_transients.sources.crossmatch import CrossmatchConfig, crossmatch, match_radius
 
+from tests.conftest import add_socat_asteroid
+
 T0 = 1_750_000_000
+#: socat 0.1 (main) or 0.0.2
+SOCAT_01 = hasattr(socat_db.Client, "get_box_fixed")
 
 
 @pytest.fixture
@@ -28,11 +36,9 @@ def socat_file(tmp_path):
     client.create_source(position=ICRS(ra=30 * u.deg, dec=-5 * u.deg), name="Blazar B",
                          flux=2.0 * u.Jy)
     client.create_source(position=ICRS(ra=50 * u.deg, dec=-40 * u.deg), name="no flux")
-    sso = client.sso.create_sso(name="Vesta", MPC_id=4)
-    for k in range(3):
-        client.ephem.create_ephem(sso_id=sso.sso_id, MPC_id=4, name="Vesta", time=T0 + 3600 * k,
-                                  position=ICRS(ra=(100 + 0.5 * k) * u.deg, dec=10 * u.deg),
-                                  flux=50 * u.mJy)
+    add_socat_asteroid(client, "Vesta", 4, [
+        (T0 + 3600 * k, ICRS(ra=(100 + 0.5 * k) * u.deg, dec=10 * u.deg)) for k in range(3)],
+        flux=50 * u.mJy)
     return path
 
 
@@ -54,7 +60,12 @@ def test_fixed_sources_read_from_socat(socat_file):
         assert np.allclose(cat.dec[order] / DEG, [-5, -20, -40])
         assert cat.flux_mjy[order][:2].tolist() == [2000.0, 100.0]
         assert np.isnan(cat.flux_mjy[order][2])
-        assert sorted(cat.source_id) == [1, 2, 3]
+        ids = sorted(cat.source_id)        # strings: socat 0.1's UUIDs, 0.0.2's integers
+        assert len(set(ids)) == 3 and all(isinstance(i, str) for i in ids)
+        if SOCAT_01:
+            assert all(uuid.UUID(i) for i in ids)
+        else:
+            assert ids == ["1", "2", "3"]
         assert cat.label == spec
 
 
@@ -84,7 +95,7 @@ def test_ecsv_and_csv_catalogues(tmp_path):
     table.write(tmp_path / "known.ecsv")
     cat = read_catalogue(tmp_path / "known.ecsv")
     assert np.allclose(cat.ra, np.radians([10, 30])) and cat.flux_mjy.tolist() == [100, 2000]
-    assert list(cat.source_id) == [-1, -1]
+    assert list(cat.source_id) == ["", ""]
     (tmp_path / "known.csv").write_text("ra,dec\n0.5,-0.1\n")
     cat = read_catalogue(tmp_path / "known.csv", unit="rad")
     assert cat.ra.tolist() == [0.5] and np.isnan(cat.flux_mjy[0]) and cat.name.tolist() == [""]
@@ -126,7 +137,9 @@ def test_crossmatch_classes(socat_file):
     assert got["cat_flux_ratio"][4] == pytest.approx(60.0 / 50.0)
     assert np.isnan(got["cat_flux_ratio"][6]) and np.isnan(got["cat_separation"][3])
     assert list(got["catalogue"]) == [spec] * 3 + [""] + [spec] + [""] + [spec]
-    assert got["cat_source_id"][3] == -1 and got["cat_source_id"][4] == 1
+    vesta = read_ephemerides(spec, t.min(), t.max()).sso_id[0]
+    assert got["cat_source_id"][3] == "" and got["cat_source_id"][4] == vesta
+    assert vesta == ("1" if not SOCAT_01 else str(uuid.UUID(vesta)))
 
 
 def test_flare_ratio_threshold_is_configurable(socat_file):

@@ -12,8 +12,9 @@ environment's ``SO_TRANSIENTS_DB``, or a URL such as ``postgresql+psycopg://user
 ``ingest`` stores each observation of each run in one transaction (re-ingesting replaces) and
 associates its events with the stored sources; ``query`` lists events (or sources) in a cone
 (degrees), a time range (ctime or ISO UTC) and above a significance (``peak_snr``);
-``lightcurve`` prints a source's light curve, or writes it as lightcurvedb FluxMeasurements
-(JSON); ``migrate`` brings an older database to this version's schema.
+``lightcurve`` prints a source's light curve, or writes lightcurvedb's records of the source (its
+Source, Instruments, FluxMeasurements and Cutouts, JSON); ``migrate`` brings an older database
+to this version's schema.
 """
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ from so_transients.database.engine import database_url, migrate, open_database, 
 from so_transients.database.ingest import ingest_run
 from so_transients.database.lightcurvedb import json_ready
 from so_transients.database.queries import (
-    counts, find_events, find_sources, flux_measurements, lightcurve
+    counts, find_events, find_sources, lightcurvedb_records, lightcurve
 )
 from so_transients.database.runs import read_run
 from so_transients.events.association import AssociationConfig
@@ -84,7 +85,8 @@ def get_parser(parser=None):
     p.add_argument("-o", "--out", help="write it to this table (.ecsv, .fits, .csv; .json "
                                        "with --lightcurvedb)")
     p.add_argument("--lightcurvedb", action="store_true",
-                   help="as lightcurvedb FluxMeasurements (JSON)")
+                   help="as lightcurvedb's records (JSON): its Source, Instruments, "
+                        "FluxMeasurements (Jy) and Cutouts")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
 
     sub.add_parser("migrate", parents=[db], help="bring the schema to this version")
@@ -164,13 +166,16 @@ def _lightcurve(args) -> int:
     points = lightcurve(engine, args.source)
     src = points.meta["source"]
     if args.lightcurvedb:
-        text = json.dumps([json_ready(m) for m in flux_measurements(points)], indent=1)
+        records = lightcurvedb_records(engine, args.source)
+        text = json.dumps({kind: [json_ready(r) for r in rows] for kind, rows in records.items()},
+                          indent=1)
         if args.out:
             path = Path(args.out)
             if path.exists() and not args.overwrite:
                 raise FileExistsError(f"{path} exists: not overwritten (use --overwrite)")
             path.write_text(text + "\n")
-            print(f"{len(points)} FluxMeasurement(s) written to {path}")
+            print(f"lightcurvedb records written to {path}: " + ", ".join(
+                f"{len(rows)} {kind}" for kind, rows in records.items()))
         else:
             print(text)
         return 0

@@ -6,6 +6,13 @@
 writes them and lightserve and lightview show them; the package's tables are in mJy) and
 ``extra`` (``{"flags": [...]}``).
 
+A source's records as lightcurvedb ingests them (:func:`source_records`): its ``Source``
+(``source_id`` the persistent source's UUID, ``name``, ``ra`` in [-180, 180), ``dec``,
+``socat_id`` and a cross-match when it matched an integer socat id), one ``Instrument`` per
+band and tube it was measured in (``frequency``, ``module``, ``telescope`` LAT, ``instrument``
+SO), its ``FluxMeasurement`` points, and its ``Cutout`` per event and band (the map in Jy, tied to
+the measurement of its crossing).
+
 ``extra.flags`` are quality flags: lightview hides a flagged point. The points carry none (a
 measurement that failed is not a light-curve point); what lightcurvedb has no field for (the
 observation, wafer and scan, whether the event was detected at that crossing, the upper
@@ -91,10 +98,56 @@ def from_flux_measurement(measurement) -> dict:
     return point
 
 
-def json_ready(measurement: dict) -> dict:
-    """A FluxMeasurement dict with UUIDs and the time as strings (for JSON)."""
-    out = dict(measurement)
-    for key in ("measurement_id", "source_id"):
-        out[key] = str(out[key])
-    out["time"] = out["time"].isoformat()
+def json_ready(record: dict) -> dict:
+    """A record dict with UUIDs and times as strings (for JSON)."""
+    out = dict(record)
+    for key, value in out.items():
+        if isinstance(value, uuid.UUID):
+            out[key] = str(value)
+        elif isinstance(value, datetime):
+            out[key] = value.isoformat()
     return out
+
+
+#: Fields of lightcurvedb's Source, Instrument and Cutout (lightcurvedb/models).
+SOURCE_FIELDS = ("source_id", "socat_id", "name", "ra", "dec", "variable", "extra")
+INSTRUMENT_FIELDS = ("frequency", "module", "telescope", "instrument", "details")
+CUTOUT_FIELDS = ("measurement_id", "data", "time", "units", "frequency", "module", "source_id")
+
+
+def _socat_id(value):
+    """lightcurvedb's integer ``socat_id`` of a catalogue id (socat 0.1's UUIDs: None)."""
+    try:
+        return int(value)
+    except (TypeError, ValueError):
+        return None
+
+
+def to_source(source: dict, events) -> dict:
+    """lightcurvedb's Source of a stored source (its row) and its ``events`` (rows with the
+    cross-match columns)."""
+    matched = [e for e in events if str(e["catalogue"])]
+    socat = _socat_id(matched[0]["cat_source_id"]) if matched else None
+    names = sorted({str(e["cat_source_name"]) for e in matched if str(e["cat_source_name"])})
+    return dict(source_id=uuid.UUID(str(source["uuid"])), socat_id=socat,
+                name=str(source["name"]), ra=(float(source["ra"]) + 180.0) % 360.0 - 180.0,
+                dec=float(source["dec"]), variable=True,     # it flared
+                extra={"cross_matches": [{"name": n} for n in names], "socat_id": socat})
+
+
+def to_instruments(points) -> list:
+    """One lightcurvedb Instrument per band (``frequency``) and tube (``module``) of
+    ``points``."""
+    pairs = sorted({(int(p["frequency"]), str(p["module"])) for p in points})
+    return [dict(frequency=f, module=m, telescope="LAT", instrument="SO",
+                 details={"bandpass": f"f{f:03d}"}) for f, m in pairs]
+
+
+def to_cutout(cutout, point, source_uuid) -> dict:
+    """lightcurvedb's Cutout of a stored cutout row (``data`` in Jy, None where nothing fell:
+    0 there, as its model takes floats) measured at light-curve ``point``."""
+    data = [[0.0 if v is None else float(v) for v in row] for row in cutout["data"]]
+    return dict(measurement_id=measurement_id(source_uuid, point), data=data,
+                time=datetime.fromtimestamp(float(cutout["ctime"]), tz=timezone.utc),
+                units="Jy", frequency=int(cutout["frequency"]), module=str(point["module"]),
+                source_id=uuid.UUID(str(source_uuid)))

@@ -14,7 +14,9 @@ from so_transients.common.angles import DEG, sky_separation
 from so_transients.database import schema
 from so_transients.database.engine import read_connection
 from so_transients.database.ingest import box_condition, source_of_uuid
-from so_transients.database.lightcurvedb import to_flux_measurement
+from so_transients.database.lightcurvedb import (
+    to_cutout, to_flux_measurement, to_instruments, to_source
+)
 
 
 def parse_time(value) -> float:
@@ -168,6 +170,28 @@ def lightcurve(engine, source) -> Table:
 def flux_measurements(points: Table) -> list:
     """lightcurvedb FluxMeasurement dicts of a :func:`lightcurve` table."""
     return [to_flux_measurement(row, row["source_uuid"]) for row in points]
+
+
+def lightcurvedb_records(engine, source) -> dict:
+    """Everything lightcurvedb holds of source ``source`` (id or UUID), as its models define
+    it: ``sources`` (one Source), ``instruments``, ``flux_measurements`` and ``cutouts``
+    (each tied to the measurement of its crossing: same observation, wafer, band and time)."""
+    points = lightcurve(engine, source)
+    src = points.meta["source"]
+    ev, cut = schema.EVENTS, schema.CUTOUTS
+    with read_connection(engine) as conn:
+        events = conn.execute(sa.select(ev.c.catalogue, ev.c.cat_source_id, ev.c.cat_source_name)
+                              .where(ev.c.source_id == src["id"])).mappings().all()
+        cutouts = conn.execute(sa.select(cut).where(cut.c.source_id == src["id"])
+                               .order_by(cut.c.ctime, cut.c.bandpass)).mappings().all()
+    out = []
+    for c in cutouts:
+        at = [p for p in points if (p["obs_id"], p["wafer_slot"], p["bandpass"]) ==
+              (c["obs_id"], c["wafer_slot"], c["bandpass"]) and abs(p["ctime"] - c["ctime"]) < 1e-3]
+        if at:
+            out.append(to_cutout(c, at[0], src["uuid"]))
+    return dict(sources=[to_source(src, events)], instruments=to_instruments(points),
+                flux_measurements=flux_measurements(points), cutouts=out)
 
 
 def counts(engine) -> dict:

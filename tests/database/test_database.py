@@ -22,7 +22,9 @@ from so_transients.database import schema
 from so_transients.database.command import get_parser, main
 from so_transients.database.engine import open_database, open_engine, write_transaction
 from so_transients.database.ingest import ingest_run
-from so_transients.database.lightcurvedb import FIELDS, from_flux_measurement
+from so_transients.database.lightcurvedb import (
+    FIELDS, INSTRUMENT_FIELDS, SOURCE_FIELDS, from_flux_measurement
+)
 from so_transients.database.queries import (
     counts, find_events, find_sources, flux_measurements, lightcurve
 )
@@ -295,10 +297,19 @@ def test_the_command_writes_tables_and_lightcurvedb_json(new_db, tmp_path, capsy
     source = source_at(url, P)
     assert db("lightcurve", "--db", url, source["id"], "--lightcurvedb",
               "-o", tmp_path / "lc.json") == 0
-    measurements = json.loads((tmp_path / "lc.json").read_text())
-    assert len(measurements) == len(lightcurve(open_database(url, create=False), source["id"]))
+    records = json.loads((tmp_path / "lc.json").read_text())
+    measurements = records["flux_measurements"]
+    points = lightcurve(open_database(url, create=False), source["id"])
+    assert len(measurements) == len(points)
     assert all(set(m) == set(FIELDS) and m["source_id"] == source["uuid"]
                for m in measurements)
+    (src,) = records["sources"]
+    assert tuple(src) == SOURCE_FIELDS and src["source_id"] == source["uuid"]
+    assert -180 <= src["ra"] < 180 and src["dec"] == pytest.approx(source["dec"])
+    assert [(i["frequency"], i["module"]) for i in records["instruments"]] == sorted(
+        {(int(p["frequency"]), str(p["module"])) for p in points})
+    assert all(tuple(i) == INSTRUMENT_FIELDS for i in records["instruments"])
+    assert records["cutouts"] == []          # a synthetic run: no cutouts
     assert db("lightcurve", "--db", url, source["id"], "-o", tmp_path / "lc.fits") == 0
     assert len(Table.read(tmp_path / "lc.fits")) == len(measurements)
     with pytest.raises(FileNotFoundError):

@@ -1,6 +1,7 @@
 """The events database on a real run: simulate an observation with a flare, run the site
 pipeline, ``so-transients catalog`` and ``so-transients events``, then ingest the output on
 SQLite and PostgreSQL."""
+import json
 import shutil
 import uuid
 
@@ -151,3 +152,53 @@ def test_alert_ids_name_the_database_rows_and_survive_a_reingest(real_run, new_d
     first = ids()
     assert db("ingest", "--db", url, real_run / "events") == 0
     assert ids() == first
+
+
+def test_a_sources_records_as_lightcurvedb_ingests_them(real_run, new_db, tmp_path):
+    """``db lightcurve --lightcurvedb`` of the flare's source: one Source, an Instrument per
+    band and tube, its FluxMeasurements in Jy, and a Cutout per event and band tied to the
+    measurement of its crossing. Where lightcurvedb's current models and storage are
+    installed (its main branch; the package index's 0.0.2 predates them) they take the records:
+    validated by its pydantic models, written to its parquet backend and read back as the
+    source's light curve."""
+    url = new_db()
+    assert db("ingest", "--db", url, real_run / "events") == 0
+    engine = open_database(url, create=False)
+    source = find_sources(engine)[0]
+    out = tmp_path / "records.json"
+    assert db("lightcurve", "--db", url, source["uuid"], "--lightcurvedb", "-o", out) == 0
+    records = json.loads(out.read_text())
+    measured = {m["measurement_id"]: m for m in records["flux_measurements"]}
+    cutouts = Table.read(real_run / "events" / "cutouts.ecsv")
+    assert len(records["cutouts"]) == len(cutouts) >= 1
+    for cutout in records["cutouts"]:
+        m = measured[cutout["measurement_id"]]          # the measurement of its crossing
+        assert (cutout["frequency"], cutout["module"], cutout["time"]) == (
+            m["frequency"], m["module"], m["time"])
+        assert cutout["units"] == "Jy" and np.nanmax(cutout["data"]) > 0.5   # a 3 Jy flare
+    pytest.importorskip("lightcurvedb.storage.parquet.backend",
+                        reason="lightcurvedb's current storage (its main branch) not installed")
+    import asyncio
+
+    from lightcurvedb.models import Cutout, FluxMeasurement, Instrument, Source
+    from lightcurvedb.storage.parquet.backend import generate_pandas_backend
+
+    async def ingest():
+        backend = await generate_pandas_backend(tmp_path / "lightcurvedb")
+        await backend.instruments.create_batch([Instrument(**i) for i in records["instruments"]])
+        await backend.sources.create_batch([Source(**s) for s in records["sources"]])
+        await backend.fluxes.create_batch([FluxMeasurement(**m)
+                                           for m in records["flux_measurements"]])
+        await backend.cutouts.create_batch([Cutout(**c) for c in records["cutouts"]])
+        source_id = uuid.UUID(records["sources"][0]["source_id"])
+        first = records["instruments"][0]
+        curve = await backend.lightcurves.get_instrument_lightcurve(
+            source_id, first["module"], first["frequency"])
+        return (await backend.lightcurves.get_frequencies_for_source(source_id),
+                [float(f) for f in curve.flux], first)
+
+    frequencies, fluxes, first = asyncio.run(ingest())
+    assert sorted(frequencies) == sorted({m["frequency"] for m in measured.values()})
+    assert sorted(fluxes) == pytest.approx(sorted(
+        m["flux"] for m in measured.values()
+        if (m["frequency"], m["module"]) == (first["frequency"], first["module"])))

@@ -6,7 +6,7 @@ config's ``context_file`` lies in the dataset folder. The simulator writes
 ``sim_config.yaml`` into every dataset it makes, and ``truth/flares.ecsv`` (the injected
 flares, radians and ctimes): a dataset with ``sim_config.yaml`` is a simulation, and an
 event within ``injection_radius_arcmin`` of an injected flare while it was active
-(:func:`so_transients.campaign.events_check.match_events`) is an injection.
+(:func:`so_transients.events.injections.match_events`) is an injection.
 """
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ import numpy as np
 from astropy.table import Table
 
 from so_transients.alerts.records import AlertsConfig
-from so_transients.campaign.events_check import match_events
+from so_transients.events.injections import match_events
 from so_transients.common.angles import ARCMIN
 from so_transients.site.pipeline import read_config
 

@@ -26,11 +26,11 @@ import numpy as np
 import yaml
 from astropy.table import Table
 
-from so_transients.common.angles import ARCMIN, sky_separation
+from so_transients.common.angles import ARCMIN
 from so_transients.common.bands import FLAVOR_BANDS
 from so_transients.events.command import run_events
 from so_transients.events.config import load_events_config
-from so_transients.common.flare_model import active_window
+from so_transients.events.injections import match_events
 from so_transients.common.robust import mad_std
 from so_transients.sim.config import SimConfig
 from so_transients.sim.simulate import simulate
@@ -79,19 +79,6 @@ def run_dataset(cfg: EventsCheckConfig, name, seed, flares: bool, progress=True)
                                            "events"), "nproc": cfg.nproc, **cfg.events}))
     run_events(load_events_config(events_yaml), progress=progress)
     return dataset, folder / "events"
-
-
-def match_events(events: Table, flares: Table, max_offset, pad) -> np.ndarray:
-    """(n_events, n_flares) bool: the event lies within ``max_offset`` of the flare and its
-    detections within the flare's active window (padded by ``pad`` s)."""
-    ra, dec = np.radians(events["ra"]), np.radians(events["dec"])
-    out = np.zeros((len(events), len(flares)), bool)
-    for j, fl in enumerate(flares):
-        start, stop = active_window(fl["t_peak"], fl["t_rise"], fl["t_decay"])
-        near = sky_separation(ra, dec, fl["ra"], fl["dec"]) < max_offset
-        overlap = (events["t_last"] >= start - pad) & (events["t_first"] <= stop + pad)
-        out[:, j] = near & overlap
-    return out
 
 
 def requirement_masks(events: Table, joint_min) -> dict:

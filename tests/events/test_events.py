@@ -214,8 +214,8 @@ def test_events_config_reads_the_shipped_yaml_and_refuses_unknown_keys(tmp_path)
 
 
 def test_events_check_matches_events_to_flares_and_counts_false_ones():
-    from so_transients.campaign.events_check import (events_per_flare, false_event_table,
-                                                     match_events)
+    from so_transients.campaign.events_check import events_per_flare, false_event_table
+    from so_transients.events.injections import match_events
 
     flares = Table(dict(ra=[1.0, 1.0], dec=[-0.5, -0.5 + 10 * ARCMIN], t_peak=[T0, T0 + 100],
                         t_rise=[10.0, 2.0], t_decay=[10.0, 2.0], s_peak=[1000.0, 1000.0],

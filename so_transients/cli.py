@@ -512,15 +512,35 @@ def configure_logging(verbose):
     logging.getLogger("sotodlib").propagate = False
 
 
+#: Optional dependencies by module, and the extra that installs them.
+EXTRAS = {"sqlalchemy": "db", "psycopg": "db", "jsonschema": "alerts", "socat": "catalog",
+          "toast": "toast"}
+
+
+def _missing_extra(exc: ModuleNotFoundError, command) -> int:
+    """Exit status 2 naming the extra a command needs (re-raised for any other module)."""
+    extra = EXTRAS.get((exc.name or "").split(".")[0])
+    if extra is None:
+        raise exc
+    print(f"so-transients {command}: error: {exc.name} is not installed: this command needs "
+          f"the `{extra}` extra (pip install 'so_transients[{extra}]')", file=sys.stderr)
+    return 2
+
+
 def main(argv=None) -> int:
     """Exit status: 0 done, 1 done with failures (a group of ``run``, ``catalog`` or
     ``events`` failed, without ``--partial``), 2 refused (one line on stderr naming the file
     and what is wrong)."""
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
-    args = build_parser(_command_named(argv)).parse_args(argv)
+    try:
+        args = build_parser(_command_named(argv)).parse_args(argv)
+    except ModuleNotFoundError as exc:
+        return _missing_extra(exc, _command_named(argv))
     configure_logging(args.verbose)
     try:
         return args.func(args) or 0
+    except ModuleNotFoundError as exc:
+        return _missing_extra(exc, args.command)
     except (ValueError, OSError, RuntimeError) as exc:
         command = " ".join(filter(None, (args.command, getattr(args, "study", None))))
         print(f"so-transients {command}: error: {exc}", file=sys.stderr)

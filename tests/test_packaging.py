@@ -1,5 +1,6 @@
 """The wheel carries what its commands read: a non-editable install, away from the checkout,
-finds the shipped configs (the demo's simulation, the site and events configs) in the package."""
+finds the shipped configs (the demo's simulation, the site and events configs) and the vetting
+pages' templates in the package."""
 import subprocess
 import sys
 from pathlib import Path
@@ -14,7 +15,9 @@ from so_transients import cli
 from so_transients.site.pipeline import PAPER, PRODUCTION
 installed = Path(so_transients.__file__).parent
 assert installed.is_relative_to(Path(sys.argv[1])), installed
-for path in (cli.DEMO_CONFIG, PRODUCTION, PAPER):
+from so_transients.report.pages import ASSETS, TEMPLATES
+templates = [TEMPLATES / name for name in ("index.html.j2", "event.html.j2", *ASSETS)]
+for path in (cli.DEMO_CONFIG, PRODUCTION, PAPER, *templates):
     assert path.is_file() and path.is_relative_to(installed), path
 dataset = Path(sys.argv[2])
 assert cli.main(["site-config", str(dataset)]) == 0

@@ -33,6 +33,7 @@ from functools import lru_cache
 from importlib import resources
 from pathlib import Path
 
+import jsonschema    # the `alerts` extra
 import numpy as np
 from astropy.table import Table
 from astropy.time import Time
@@ -87,8 +88,6 @@ def load_schema() -> dict:
 
 def validate(record: dict):
     """Raise a ValueError naming the alert and every field that breaks the schema."""
-    import jsonschema
-
     validator = jsonschema.Draft202012Validator(load_schema())
     errors = sorted(validator.iter_errors(record), key=lambda e: list(e.path))
     if errors:

@@ -155,3 +155,18 @@ def test_help_does_not_import_the_pipeline_and_steps_register_when_it_is(tmp_pat
         registered = ast.literal_eval(out.split("STEPS", 1)[1].strip())
         assert {"transient_filter", "transient_find", "transient_fit", "transient_jumps",
                 "transient_pca_filter"} <= set(registered), first
+
+
+@pytest.mark.parametrize("module, extra, argv", [
+    ("sqlalchemy", "db", ["db", "query"]), ("jsonschema", "alerts", ["alerts", ".", "-o", "x"])])
+def test_a_command_whose_extra_is_missing_names_it(module, extra, argv):
+    """The database and the alerts are optional extras: without them the command says
+    which to install (exit 2), in a process where the module cannot be imported."""
+    import subprocess
+    import sys
+
+    code = (f"import sys; sys.modules[{module!r}] = None\n"
+            f"from so_transients import cli; sys.exit(cli.main({argv!r}))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert run.returncode == 2, run.stderr[-2000:]
+    assert f"pip install 'so_transients[{extra}]'" in run.stderr

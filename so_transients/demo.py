@@ -85,3 +85,33 @@ def events_report(config, nproc=2) -> str:
     """Step 4: the events, light curves and figures of the site config's archive."""
     cfg = load_events_config(config, {"nproc": nproc})
     return summary(run_events(cfg), cfg.output)
+
+
+def get_parser(parser=None):
+    """``so-transients demo``'s options (built like a sotodlib site-pipeline element)."""
+    import argparse
+
+    from so_transients.cli import DEMO_CONFIG
+
+    if parser is None:
+        parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--config", help=f"simulation YAML (default: {DEMO_CONFIG.name})")
+    parser.add_argument("-o", "--out", default="data/demo", help="output folder")
+    parser.add_argument("--nproc", type=int, default=2, help="site pipeline processes")
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    return parser
+
+
+def main(args) -> int:
+    """Simulate the demo's observation into ``args.out``, then :func:`run_demo` on it."""
+    from so_transients.cli import DEMO_CONFIG
+    from so_transients.sim.command import run_simulation
+    from so_transients.site.summary import dataset_summary
+
+    args.config = args.config or DEMO_CONFIG
+    args.seed = None
+    args.overwrite = True
+    result = run_simulation(args)
+    print(dataset_summary(result.context))
+    print(run_demo(result.context.parent, nproc=args.nproc))
+    return 0

@@ -8,27 +8,15 @@ from __future__ import annotations
 import numpy as np
 import sqlalchemy as sa
 from astropy.table import Table
-from astropy.time import Time
 
 from so_transients.common.angles import DEG, sky_separation
+from so_transients.common.times import parse_time
 from so_transients.database import schema
 from so_transients.database.engine import read_connection
 from so_transients.database.ingest import box_condition, source_of_uuid
 from so_transients.database.lightcurvedb import (
     to_cutout, to_flux_measurement, to_instruments, to_source
 )
-
-
-def parse_time(value) -> float:
-    """A ctime from ctime seconds (a number) or an ISO UTC string (``2023-11-14T22:14:32``)."""
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        pass
-    try:
-        return float(Time(str(value), scale="utc").unix)
-    except ValueError:
-        raise ValueError(f"{value!r}: not a ctime nor an ISO UTC time") from None
 
 
 def _unit_and_meaning(sql_table: sa.Table, name):

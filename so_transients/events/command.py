@@ -261,7 +261,13 @@ def run_events(cfg: EventsConfig, progress=True, selection=None):
             pool.shutdown()
 
 
-def main(config, out=None, nproc=None, partial=False, quiet=False, selection=None):
+def main(args) -> int:
+    """The command on :func:`get_parser`'s options."""
+    return events_main(args.config, args.out, args.nproc, args.partial, args.quiet,
+                       ObsSelection.from_args(args))
+
+
+def events_main(config, out=None, nproc=None, partial=False, quiet=False, selection=None):
     """Exit status: 0 done, 1 when a work unit failed (0 with ``partial``)."""
     cfg = load_events_config(config, {"output": out, "nproc": nproc})
     tables = run_events(cfg, progress=not quiet, selection=selection)
@@ -280,6 +286,4 @@ def main(config, out=None, nproc=None, partial=False, quiet=False, selection=Non
 
 
 if __name__ == "__main__":
-    args = get_parser().parse_args()
-    sys.exit(main(args.config, args.out, args.nproc, args.partial, args.quiet,
-                  ObsSelection.from_args(args)))
+    sys.exit(main(get_parser().parse_args()))

@@ -12,4 +12,6 @@ campaign folder and :mod:`.flare_injection` for the fast injection path.
 - :mod:`.stats`, :mod:`.report`, :mod:`.markdown`, :mod:`.figures`, :mod:`.combine`: results
 - :mod:`.equal_rate`, :mod:`.far_budget`: thresholds at the paper's false-detection rate
 - :mod:`.events_check`: the events step measured on simulated flares
+- :mod:`.score_training`: the real-or-artefact score trained on simulated real wafers
+- :mod:`.command`: ``so-transients study`` and its studies
 """

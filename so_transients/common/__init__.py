@@ -10,6 +10,8 @@
 - :mod:`.step_config`: a step's YAML block read into its config dataclass, checked
 - :mod:`.parallel`: independent work dispatched through sotodlib's executor
 - :mod:`.tables`: tables read back as written (ECSV, FITS, CSV)
+- :mod:`.times`: ctime or ISO UTC as users give them
+- :mod:`.sky_match`: positions matched on the sky (astropy's k-d tree)
 
 Imports nothing from the other subpackages.
 """

@@ -9,6 +9,8 @@
 - :mod:`.fit`: the beam-model fit; :mod:`.forced_fit`: the fit at a fixed position, over one or
   several crossings; :mod:`.fit_candidates`: a group's candidates fitted
   (``transient_fit``); :mod:`.motion`: detections whose position drifts
+- :mod:`.cutout`: what a person vets a crossing with: a sky cutout made from the TOD and the
+  time streams of the detectors that saw it
 
 For the standard steps before the search, on real wafers: :mod:`.jumps` (readout jumps,
 ``transient_jumps``), :mod:`.common_mode` (a wafer's common mode; crossings hidden from the

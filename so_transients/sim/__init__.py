@@ -9,6 +9,7 @@
 - :mod:`.glitches`, :mod:`.jumps`, :mod:`.imperfections`: what makes real detectors differ
   from ideal ones
 - :mod:`.simulate`: one wafer-band group at a time; :mod:`.dataset`: the dataset on disk
+- :mod:`.command`: ``so-transients simulate``
 
 Uses :mod:`so_transients.common` and :mod:`so_transients.io`, never the search.
 """

@@ -7,4 +7,7 @@
 - :mod:`.summary`: a plain-text summary of a dataset
 - :mod:`.losses`: what each group lost (detectors removed and why, samples masked)
 - :mod:`.turnarounds`: observations too short for a config's turnaround flags
+- commands (``get_parser``, ``main``): :mod:`.config_command` (``site-config``),
+  :mod:`.run_command` (``run``), :mod:`.catalog_command` (``catalog``),
+  :mod:`.summary_command` (``summary``), :mod:`.schema_command` (``schema``)
 """

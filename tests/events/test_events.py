@@ -4,12 +4,12 @@ import pytest
 from astropy.table import Table
 
 from so_transients.common import pointing
-from so_transients.common.angles import ARCMIN, ARCSEC
+from so_transients.common.angles import ARCMIN, ARCSEC, sky_separation
 from so_transients.events.association import AssociationConfig
 from so_transients.common.bands import CENTER_GHZ, get_band
 from so_transients.events.tables import associate_detections, complete_events, lightcurve_table
 from so_transients.detect.find import FindConfig, searchable_scans
-from so_transients.detect.fit import FitConfig, FitInputs, beam_shape, fit_window
+from so_transients.detect.fit import FitConfig, FitInputs
 from so_transients.detect.forced_fit import PhotometryConfig, group_crossings, measure_crossings
 from so_transients.common.flare_model import flare_flux
 from so_transients.events.lightcurve_fit import FlareFitConfig, fit_flare, spectral_index
@@ -81,7 +81,8 @@ def test_no_detections_give_an_empty_events_table_with_every_column():
 def synthetic_group(light_curve, duration=90.0, fs=100.0):
     """A noiseless group: a 12 x 12 grid of f090 detectors 1' apart scanning 12 s sweeps,
     and a source at the grid centre's pointing at 40 s whose amplitude at each crossing is
-    ``light_curve(t)`` times the beam model the fit assumes. Returns ``(data, ra, dec,
+    ``light_curve(t)`` times a Gaussian beam through a Gaussian filter response, computed
+    from each sample's distance to the source (not with the fit's own beam model). Returns ``(data, ra, dec,
     scan, times)``."""
     pattern = ScanPattern(sweep_time=12.0)
     t_rel = np.arange(0, duration, 1 / fs)
@@ -107,9 +108,14 @@ def synthetic_group(light_curve, duration=90.0, fs=100.0):
     # a 1e-3 mJy floor: samples of exactly 0 are the filter's invalid ones, never fitted
     amp = np.random.default_rng(0).normal(0, 1e-3, data.snr.shape)
     for tc in times:
+        # the amplitude from the geometry alone, not from the fit's beam model: a Gaussian
+        # beam through this Gaussian filter response (lag sigma = beam sigma / scan speed)
+        # is exp(-r^2 / 2 sigma^2) of each sample's distance r from the source on the sky
         lo, hi = np.searchsorted(t, [tc - FitConfig().window, tc + FitConfig().window])
-        _, track, _ = fit_window(data, ra[0], dec[0], lo, hi, dets, FitConfig())
-        amp[:, lo:hi] += light_curve(tc) * beam_shape(track, xi, eta)
+        d, k = np.meshgrid(dets, np.arange(lo, hi), indexing="ij")
+        sky_ra, sky_dec = pointing.radec_of_samples(bore_q, xi, eta, d.ravel(), k.ravel())
+        r = sky_separation(sky_ra, sky_dec, ra[0], dec[0]).reshape(d.shape)
+        amp[:, lo:hi] += light_curve(tc) * np.exp(-0.5 * (r / sigma) ** 2)
     data.snr = amp / data.sigma_amp[:, None]
     return data, ra[0], dec[0], scan, times
 
@@ -123,7 +129,9 @@ def test_forced_photometry_of_a_noiseless_source_returns_its_light_curve():
     assert res["keep"].all()
     truth = light_curve(times)
     assert (truth > 0).sum() >= 2 and (truth == 0).sum() >= 2
-    np.testing.assert_allclose(res["flux"], truth, rtol=1e-6, atol=1e-2)
+    # within 0.5 %: the fit's flat focal-plane track against the sky distances the data were
+    # made from differ by 0.2 % here; with a beam 30 % too wide the fit comes out 13 % low
+    np.testing.assert_allclose(res["flux"], truth, rtol=5e-3, atol=1e-2)
     off = truth == 0
     # an upper limit where the flare is off (flux ~0: 3 flux_err), none where it is bright
     np.testing.assert_allclose(res["upper_limit"][off], 3 * res["flux_err"][off], atol=1e-2)

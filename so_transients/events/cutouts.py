@@ -7,7 +7,9 @@ crossing with the highest forced S/N is kept and written::
 
     cutouts/event_<id>_<band>.fits     the binned filtered amplitude (mJy, BUNIT) with its
                                        TAN WCS; HDU WEIGHT its weights (1/mJy^2)
-    cutouts/event_<id>_<band>.npz      the detector time streams there
+    cutouts/event_<id>_<band>.npz      the detector time streams of its crossings (those at
+                                       the forced photometry's detection S/N, at least the
+                                       best one): ``c<k>_<name>``, :func:`crossings_of`
     cutouts.ecsv                       one row per file pair (:data:`schema.CUTOUTS`)
 
 :func:`lightcurvedb_cutout` turns a row into lightcurvedb's ``Cutout`` fields.
@@ -28,7 +30,19 @@ from so_transients.events.group_photometry import read_vetting, vetting_path
 from so_transients.site.results import utc
 
 FOLDER = "cutouts"
-STREAMS = ("t", "dets", "det_names", "across", "filtered", "raw", "model")
+#: The arrays of each crossing's detector time streams (``c<k>_<name>`` in the NPZ file).
+STREAMS = ("t", "dets", "det_names", "across", "filtered", "raw", "model", "ctime", "snr")
+
+
+def crossings_of(arrays) -> list:
+    """[{name: array}] of each crossing's time streams in ``arrays`` (keys ``c<k>_<name>``),
+    in time order."""
+    crossings = {}
+    for key, value in arrays.items():
+        head, _, name = key.partition("_")
+        if head[:1] == "c" and head[1:].isdigit() and name in STREAMS:
+            crossings.setdefault(int(head[1:]), {})[name] = value
+    return [crossings[k] for k in sorted(crossings)]
 
 
 def best_crossings(statuses) -> dict:
@@ -92,7 +106,9 @@ def write_cutouts(events: Table, statuses, out: Path) -> Table:
             continue
         stem = f"event_{eid:04d}_{band}"
         cutout_hdus(arrays, event).writeto(folder / f"{stem}.fits", overwrite=True)
-        np.savez_compressed(folder / f"{stem}.npz", **{k: arrays[k] for k in STREAMS})
+        np.savez_compressed(folder / f"{stem}.npz", **{
+            f"c{k}_{name}": value for k, crossing in enumerate(crossings_of(arrays))
+            for name, value in crossing.items()})
         ra, dec = peak_position(np.asarray(arrays["map"]),
                                 WCS(fits.Header.fromstring(str(arrays["wcs"]))))
         offset = np.degrees(sky_separation(*np.radians([ra, dec, event["ra"], event["dec"]])))

@@ -183,9 +183,11 @@ def measure_group(job: GroupJob):
             best = times[keep][k]
             tracks[f"{ev['event_id']}_{band}"] = detector_tracks(data, ev["ra"], ev["dec"],
                                                                  best, band_dets, job.fit)
-            vetting.update(vetting_arrays(
-                data, signal, names, ev, band, best, band_dets, job.fit, res["flux"][k],
-                res["offset"][k], res["snr"][k], job.obs_id, wafers[band_dets[0]]))
+            vetting.update(vetting_arrays(data, ev, band, best, band_dets, job.fit,
+                                          res["flux"][k], res["snr"][k], job.obs_id,
+                                          wafers[band_dets[0]]))
+            vetting.update(crossings_streams(data, signal, names, ev, band, times[keep], res,
+                                             band_dets, job.fit, job.photometry.detect_snr))
     table = Table({k: np.concatenate([r[k] for r in rows]) for k in rows[0]}) if rows \
         else Table({k: np.zeros(0) for k in UNIT_COLUMNS + ("bandpass", "wafer_slot")})
     table["obs_id"] = np.full(len(table), job.obs_id)
@@ -193,24 +195,44 @@ def measure_group(job: GroupJob):
     return table, tracks, vetting
 
 
-def vetting_arrays(data: FitInputs, signal, names, event, band, t_best, band_dets, fit_cfg,
-                   flux, offset, snr, obs_id, wafer) -> dict:
-    """The cutout (``map``, ``weight``, ``wcs``: its FITS header as text) and the detector
-    time streams (:func:`so_transients.detect.cutout.crossing_streams`, with the detectors'
-    ``names``) of ``event`` at its
+def vetting_arrays(data: FitInputs, event, band, t_best, band_dets, fit_cfg, flux, snr,
+                   obs_id, wafer) -> dict:
+    """The cutout (``map``, ``weight``, ``wcs``: its FITS header as text) of ``event`` at its
     best crossing ``t_best`` in ``band``, keyed ``<event_id>_<band>_<name>``; ``ctime``,
     ``flux`` and ``snr`` (the forced fit's, mJy), ``obs_id`` and ``wafer_slot`` say which
     crossing, ``beam_fwhm`` (arcmin) the band's beam."""
     sky, weight, wcs = cutout_map(data, event["ra"], event["dec"], t_best, band_dets, fit_cfg)
-    streams = crossing_streams(data, signal, event["ra"], event["dec"], t_best, band_dets,
-                               fit_cfg, flux, offset)
     fwhm = float(np.median(data.beam_sigma[band_dets])) * np.sqrt(8 * np.log(2))
     arrays = dict(map=sky.astype(np.float32), weight=weight.astype(np.float32),
                   beam_fwhm=np.array(np.degrees(fwhm) * 60.0),
                   wcs=np.array(wcs.to_header_string()), ctime=np.array(t_best),
                   flux=np.array(flux), snr=np.array(snr), obs_id=np.array(obs_id),
-                  wafer_slot=np.array(wafer), det_names=names[streams["dets"]], **streams)
+                  wafer_slot=np.array(wafer))
     return {f"{event['event_id']}_{band}_{name}": value for name, value in arrays.items()}
+
+
+#: Crossings of an event per band whose time streams are kept (the highest forced S/N first).
+MAX_STREAM_CROSSINGS = 6
+
+
+def crossings_streams(data: FitInputs, signal, names, event, band, times, res, band_dets,
+                      fit_cfg, min_snr) -> dict:
+    """The detector time streams (:func:`so_transients.detect.cutout.crossing_streams`) of
+    each crossing of ``event`` in ``band`` measured at forced S/N ``min_snr`` or more (at
+    least the best one; at most :data:`MAX_STREAM_CROSSINGS`), keyed
+    ``<event_id>_<band>_c<k>_<name>`` in time order, with ``ctime`` and ``snr``."""
+    snr = np.asarray(res["snr"], float)
+    chosen = [int(i) for i in np.argsort(-snr, kind="stable")
+              if snr[i] >= min_snr][:MAX_STREAM_CROSSINGS] or [int(np.argmax(snr))]
+    out = {}
+    for k, i in enumerate(sorted(chosen, key=lambda i: times[i])):
+        streams = crossing_streams(data, signal, event["ra"], event["dec"], times[i],
+                                   band_dets, fit_cfg, res["flux"][i], res["offset"][i])
+        arrays = dict(streams, det_names=names[streams["dets"]], ctime=np.array(times[i]),
+                      snr=np.array(snr[i]))
+        out.update({f"{event['event_id']}_{band}_c{k}_{name}": value
+                    for name, value in arrays.items()})
+    return out
 
 
 def detector_tracks(data: FitInputs, ra, dec, t_center, band_dets, fit_cfg: FitConfig,

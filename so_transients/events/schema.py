@@ -138,6 +138,7 @@ CUTOUTS = (
     Column("file", "str", None, _C, "FITS file of the cutout, relative to the events folder: "
                                     "the binned filtered amplitude (mJy) with its WCS, and "
                                     "its weights (1/mJy^2) in HDU WEIGHT"),
-    Column("streams", "str", None, _C, "NPZ file of the detector time streams there "
-                                       "(so_transients.detect.cutout.crossing_streams)"),
+    Column("streams", "str", None, _C, "NPZ file of the detector time streams of its "
+                                       "crossings at the detection S/N (at least this one): "
+                                       "so_transients.events.cutouts.crossings_of"),
 )

@@ -19,6 +19,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from astropy.io import fits  # noqa: E402
 from astropy.table import Table  # noqa: E402
+from astropy.time import Time  # noqa: E402
 from astropy.wcs import WCS  # noqa: E402
 
 from so_transients.common.angles import ARCMIN, tangent_offsets  # noqa: E402
@@ -95,16 +96,21 @@ def _stacked(ax, t, traces, step, color, lw=0.7, **kw):
 
 
 def plot_streams(cutouts, folder, path):
-    """Per band (a row), the detectors' time streams of the best crossing, one above the
-    other: the preprocessed signal, the filtered signal with the beam fit's model, and the
-    residual (filtered - model); written to ``path``."""
-    n_rows = max(len(cutouts), 1)
-    height = 3.6 * n_rows
+    """Per band and crossing (a row each), the detectors' time streams one above the other:
+    the preprocessed signal, the filtered signal with the beam fit's model, and the residual
+    (filtered - model); written to ``path``."""
+    from so_transients.events.cutouts import crossings_of
+
+    rows = [(row, c) for row in cutouts
+            for c in crossings_of(dict(np.load(folder / row["streams"])))]
+    n_rows = max(len(rows), 1)
+    height = 3.0 * n_rows + 0.6
     fig, axes = plt.subplots(n_rows, 3, figsize=(13, height), squeeze=False)
-    for (raw_ax, filt_ax, res_ax), row in zip(axes, cutouts):
-        s = np.load(folder / row["streams"])
+    for (raw_ax, filt_ax, res_ax), (row, s) in zip(axes, rows):
+        when = Time(float(s["ctime"]), format="unix").isot
         if not len(s["dets"]):
-            raw_ax.set_title(f"{row['bandpass']}: no detector near the source", fontsize=9)
+            raw_ax.set_title(f"{row['bandpass']} {when}: no detector near the source",
+                             fontsize=9)
             continue
         filtered, model = s["filtered"], s["model"]
         step = 1.2 * float(np.nanmax(np.abs(filtered), initial=1.0))
@@ -118,15 +124,15 @@ def plot_streams(cutouts, folder, path):
             ax.set_yticklabels([f"{name}\n{a:.1f} sigma" for name, a in
                                 zip(s["det_names"], s["across"])] if ax is raw_ax else [],
                                fontsize=6)
-            ax.set_xlabel(f"time - {row['time']} UTC [s]", fontsize=8)
+            ax.set_xlabel(f"time - {when} UTC [s]", fontsize=8)
             ax.tick_params(labelsize=7)
-        raw_ax.set_title(f"{row['bandpass']}: preprocessed signal (offset per detector)",
+        raw_ax.set_title(f"{row['bandpass']}, forced S/N {float(s['snr']):.1f}: preprocessed",
                          fontsize=9)
         filt_ax.set_title(f"filtered [mJy, {step:.0f} apart] and beam fit", fontsize=9)
         res_ax.set_title("residual: filtered - fit", fontsize=9)
         filt_ax.legend(fontsize=7, loc="upper right")
     fig.subplots_adjust(left=0.13, right=0.98, bottom=0.6 / height, top=1 - 0.3 / height,
-                        wspace=0.08, hspace=0.35)
+                        wspace=0.08, hspace=0.45)
     fig.savefig(path, dpi=80)
     plt.close(fig)
 

@@ -57,7 +57,7 @@ def report(matched: Table, flares: Table, crossings: dict, t0: float) -> str:
     return "\n".join(lines)
 
 
-def run_demo(dataset: Path, nproc=2) -> str:
+def run_demo(dataset: Path, nproc=2, progress=True) -> str:
     """Steps 2 to 4 on an existing simulated dataset; returns the printed report."""
     dataset = Path(dataset)
     config = write_site_config(dataset)
@@ -78,13 +78,13 @@ def run_demo(dataset: Path, nproc=2) -> str:
             f"{dataset / 'preprocess'}\n" + report(matched, flares, crossings, start)
             + f"\nDetections table: {table_path}; plots under "
               f"{dataset / 'preprocess' / 'plots'}")
-    return text + "\n\nEvents (so-transients events):\n" + events_report(config, nproc)
+    return text + "\n\nEvents (so-transients events):\n" + events_report(config, nproc, progress)
 
 
-def events_report(config, nproc=2) -> str:
+def events_report(config, nproc=2, progress=True) -> str:
     """Step 4: the events, light curves and figures of the site config's archive."""
     cfg = load_events_config(config, {"nproc": nproc})
-    return summary(run_events(cfg), cfg.output)
+    return summary(run_events(cfg, progress=progress), cfg.output)
 
 
 def get_parser(parser=None):
@@ -113,5 +113,5 @@ def main(args) -> int:
     args.overwrite = True
     result = run_simulation(args)
     print(dataset_summary(result.context))
-    print(run_demo(result.context.parent, nproc=args.nproc))
+    print(run_demo(result.context.parent, nproc=args.nproc, progress=not args.quiet))
     return 0

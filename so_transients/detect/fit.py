@@ -56,6 +56,10 @@ class FitConfig:
     cross_scan_sigma: float = 6.0  # detectors passing within this many beam sigmas are fitted
     #                                (the 3 sigma position range plus 3 sigma of beam)
     n_null: int = 200            # random positions used to measure the error scale
+    local_window: float | None = None  # s: a significant fit's error scale is also measured
+    #                                    within this of it, and the larger of the two is used
+    #                                    (None: the group's only)
+    n_null_local: int = 400      # random positions of that local measurement
     seed: int = 0                # seed of the random null positions
     error_scale: float | None = None   # fixed error scale (None: measured on the group)
     max_motion_arcmin_per_min: float = 5.0   # detections this far apart per time are linked
@@ -74,6 +78,7 @@ class FitConfig:
         positive("transient_fit", window=self.window, radius_deg=self.radius_deg,
                  min_snr=self.min_snr, cross_scan_sigma=self.cross_scan_sigma,
                  n_null=self.n_null, error_scale=self.error_scale,
+                 local_window=self.local_window, n_null_local=self.n_null_local,
                  max_motion_arcmin_per_min=self.max_motion_arcmin_per_min,
                  min_motion_arcmin_per_min=self.min_motion_arcmin_per_min,
                  motion_floor_arcsec=self.motion_floor_arcsec,
@@ -518,20 +523,29 @@ def fit_at(data: FitInputs, ra, dec, t_center, band_dets, error_scale, cfg: FitC
     return res
 
 
-def measure_error_scale(data: FitInputs, band_dets, cand_times, cfg: FitConfig):
+def measure_error_scale(data: FitInputs, band_dets, cand_times, cfg: FitConfig, around=None):
     """Measured spread of the fitted amplitude at ``cfg.n_null`` random positions of the live
-    detectors of ``band_dets``, more than 2 s from ``cand_times`` (see :func:`null_scatter`)."""
+    detectors of ``band_dets``, more than 2 s from ``cand_times`` (see :func:`null_scatter`).
+    With ``around`` (a time): at ``cfg.n_null_local`` positions within ``cfg.local_window``
+    seconds of it instead (1.0 when fewer than 100 can be fitted there)."""
     dets = band_dets[~data.dead[band_dets]]
     t = data.timestamps
     rng = np.random.default_rng(cfg.seed)
     n_win = samples_in(t, cfg.window)
     lo_ok, hi_ok = n_win + 1, len(t) - n_win - 1
+    n_null = cfg.n_null
+    if around is not None:
+        lo_ok = max(lo_ok, int(np.searchsorted(t, around - cfg.local_window)))
+        hi_ok = min(hi_ok, int(np.searchsorted(t, around + cfg.local_window)))
+        n_null = cfg.n_null_local
     if not len(dets) or hi_ok <= lo_ok:
         return 1.0
-    centers = rng.integers(lo_ok, hi_ok, size=4 * cfg.n_null)
+    centers = rng.integers(lo_ok, hi_ok, size=4 * n_null)
     far = np.min(np.abs(t[centers][:, None] - np.asarray(cand_times)[None, :]), axis=1,
                  initial=np.inf) > 2.0
-    centers = centers[far][: cfg.n_null]
+    centers = centers[far][:n_null]
+    if around is not None and len(centers) < 100:
+        return 1.0
     picks = rng.choice(dets, size=len(centers))
     ra, dec = pointing.radec_of_samples(data.bore_q, data.xi, data.eta, picks, centers)
     windows = []

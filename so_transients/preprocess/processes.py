@@ -754,7 +754,9 @@ class TransientFit(_Preprocess):
     ``error_scale``, the measured spread of the same fit at ``n_null`` random positions away
     from candidates (residual atmosphere is correlated between neighbouring detectors, so the
     naive covariance is too small), unless a fixed ``error_scale`` is configured (injection
-    campaigns fix it from the noise-only data).
+    campaigns fix it from the noise-only data). With ``local_window``, a fit significant at
+    that scale is refitted with the scale measured at ``n_null_local`` positions within
+    ``local_window`` seconds of it when that is larger (the noise is not stationary).
 
     In ``aman.transient_candidates`` and saved to the archive as ``proc_aman.transient_fit``
     (on the detector axis, keyed by ``cand_id``): the ``transient_fit`` columns of
@@ -785,6 +787,8 @@ class TransientFit(_Preprocess):
           min_snr: 5.0
           cross_scan_sigma: 6.0           # detectors passing within this many beam sigmas
           n_null: 200                     # random positions measuring the error scale
+          local_window: null              # s: also measured this near each significant fit
+          n_null_local: 400               # random positions of that local measurement
           seed: 0                         # for the random null positions
           error_scale: null               # fixed scale (null: measured on this group)
           max_motion_arcmin_per_min: 5.0  # detections linked across scans up to this rate

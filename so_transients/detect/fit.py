@@ -58,7 +58,8 @@ class FitConfig:
     n_null: int = 200            # random positions used to measure the error scale
     local_window: float | None = None  # s: a significant fit's error scale is also measured
     #                                    within this of it, and the larger of the two is used
-    #                                    (None: the group's only)
+    #                                    (None: the group's only; not with a fixed
+    #                                    error_scale)
     n_null_local: int = 400      # random positions of that local measurement
     seed: int = 0                # seed of the random null positions
     error_scale: float | None = None   # fixed error scale (None: measured on the group)

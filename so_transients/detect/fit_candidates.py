@@ -38,7 +38,7 @@ def fit_group_candidates(data: FitInputs, cands, det_bands, cfg: FitConfig, scor
               for b in np.unique(cands["bandpass"][passed])}
     rows = [_fit_one(data, cands, c, det_bands, scales, cfg) if passed[c] else {}
             for c in range(n)]
-    if cfg.local_window is not None:
+    if cfg.local_window is not None and cfg.error_scale is None:
         _local_scales(data, cands, det_bands, scales, rows, cfg)
     schema = candidates.BY_NAME
     out = {k: np.array([r.get(k, schema[k].fill) for r in rows], dtype=schema[k].dtype)

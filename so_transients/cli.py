@@ -38,7 +38,6 @@ import logging
 import sys
 from pathlib import Path
 
-log = logging.getLogger("so_transients.cli")
 DEMO_CONFIG = Path(__file__).resolve().parent / "configs" / "sim_demo.yaml"
 
 #: The commands: name -> (module with ``get_parser(parser)`` and ``main(args)``, help). As in

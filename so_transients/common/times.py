@@ -1,6 +1,7 @@
-"""Times as users give them: ctime seconds or ISO UTC."""
+"""Times as users give them and as tables show them: ctime seconds and ISO UTC."""
 from __future__ import annotations
 
+import numpy as np
 from astropy.time import Time
 
 
@@ -14,3 +15,9 @@ def parse_time(value) -> float:
         return float(Time(str(value), scale="utc").unix)
     except ValueError:
         raise ValueError(f"{value!r}: not a ctime nor an ISO UTC time") from None
+
+
+def utc(ctime) -> np.ndarray:
+    """ISO UTC strings of ctimes (seconds)."""
+    ctime = np.atleast_1d(np.asarray(ctime, np.float64))
+    return Time(ctime, format="unix").isot if len(ctime) else np.zeros(0, "U23")

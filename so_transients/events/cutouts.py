@@ -27,7 +27,7 @@ from so_transients.common.angles import sky_separation
 from so_transients.common.candidates import typed_table
 from so_transients.events import schema
 from so_transients.events.group_photometry import read_vetting, vetting_path
-from so_transients.site.results import utc
+from so_transients.common.times import utc
 
 FOLDER = "cutouts"
 #: The arrays of each crossing's detector time streams (``c<k>_<name>`` in the NPZ file).

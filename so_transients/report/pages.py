@@ -24,10 +24,10 @@ from pathlib import Path
 
 import numpy as np
 from astropy.table import Table
-from astropy.time import Time
 from jinja2 import Environment, FileSystemLoader, select_autoescape
 
 from so_transients.common.parallel import executor, is_worker_rank, run_all
+from so_transients.common.times import utc
 from so_transients.report.plots import FigureJob, draw_event_figures
 from so_transients.score.person_labels import DETECTION_COLUMNS
 
@@ -141,7 +141,7 @@ def _cell(name, value) -> str:
     if np.asarray(value).dtype.kind != "f":
         return str(value)
     if name == "t_peak":
-        return Time(float(value), format="unix").isot if np.isfinite(value) else "-"
+        return str(utc(float(value))[0]) if np.isfinite(value) else "-"
     if name == "far":
         return f"{float(value):.3g}" if np.isfinite(value) else "-"
     return _fmt(value, 2)

@@ -19,10 +19,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from astropy.io import fits  # noqa: E402
 from astropy.table import Table  # noqa: E402
-from astropy.time import Time  # noqa: E402
 from astropy.wcs import WCS  # noqa: E402
 
 from so_transients.common.angles import ARCMIN, tangent_offsets  # noqa: E402
+from so_transients.common.times import utc  # noqa: E402
 
 
 def _offsets_arcmin(ra_deg, dec_deg, ra0_deg, dec0_deg):
@@ -107,7 +107,7 @@ def plot_streams(cutouts, folder, path):
     height = 3.0 * n_rows + 0.6
     fig, axes = plt.subplots(n_rows, 3, figsize=(13, height), squeeze=False)
     for (raw_ax, filt_ax, res_ax), (row, s) in zip(axes, rows):
-        when = Time(float(s["ctime"]), format="unix").isot
+        when = str(utc(float(s["ctime"]))[0])
         if not len(s["dets"]):
             raw_ax.set_title(f"{row['bandpass']} {when}: no detector near the source",
                              fontsize=9)

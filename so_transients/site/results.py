@@ -30,13 +30,13 @@ from pathlib import Path
 
 import numpy as np
 from astropy.table import Column, Table, vstack
-from astropy.time import Time
 from sotodlib import core
 from sotodlib.core.metadata import ManifestDb
 
 from so_transients.common import candidates
 from so_transients.common.angles import ARCSEC, DEG
 from so_transients.common.tables import FORMATS, for_writing, read_table
+from so_transients.common.times import utc
 from so_transients.site.provenance import attach, provenance
 from so_transients.site.pipeline import archive_index, check_config, errlog_entries, read_config
 from so_transients.preprocess.slot_storage import unpack
@@ -255,12 +255,6 @@ def archive_status(archive_or_config, selection: ObsSelection | None = None) -> 
               for k in missing}
     failed.update({k: v for k, v in errors.items() if k not in archived})
     return ArchiveStatus(index, config, archived, expected, failed)
-
-
-def utc(ctime) -> np.ndarray:
-    """ISO UTC strings of ctimes (seconds)."""
-    ctime = np.atleast_1d(np.asarray(ctime, np.float64))
-    return Time(ctime, format="unix").isot if len(ctime) else np.zeros(0, "U23")
 
 
 def readable_columns() -> list:

@@ -33,7 +33,10 @@ os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 import numpy as np
 from astropy.table import Table
 
-from so_transients.campaign.drawn_wafer import SHIPPED, drawn_config, drawn_summary, run_shipped
+from so_transients.campaign.drawn_wafer import (
+    SHIPPED, config_summaries, drawn_config, drawn_summary, run_shipped
+)
+from so_transients.campaign.provenance import commit, today
 from so_transients.campaign.real_wafer import (
     flare_list, mislocated, score, simulate_seed, summary
 )
@@ -112,7 +115,8 @@ def write_table(table, args):
     names = list(dict.fromkeys(k for r in table for k in r))
     out = Table(rows=[[r.get(k, np.nan) for k in names] for r in table], names=names)
     out.meta["comments"] = [f"{Path(sys.argv[0]).name}, seeds {args.seeds}, modes {args.modes}",
-                            f"{args.minutes:g} minutes of one f090 wafer-band per realization"]
+                            f"{args.minutes:g} minutes of one f090 wafer-band per realization",
+                            f"commit {commit()}, {today()}; configs as shipped at that commit"]
     out.write(args.out, overwrite=True)
     return out
 
@@ -125,6 +129,12 @@ def print_markdown(out, noise_only):
             print(f"{config}: {int(np.sum(rows['false']))} false detections in {hours:.2f} "
                   f"wafer-band-hours")
         return
+    print("| config | realizations | 3 Jy found | within 10 % and 0.2' | worst flux ratio | "
+          "largest offset (') | 900 mJy found | unmatched | mislocated |")
+    print("| --- " * 9 + "|")
+    for row in config_summaries(out):
+        print("| " + " | ".join(row) + " |")
+    print()
     print("| seed | config | 3 Jy found | within 10 %, 0.2' | worst flux ratio | max offset (') "
           "| 900 mJy | unmatched | mislocated | n_eff / used |")
     print("| --- " * 10 + "|")

@@ -43,3 +43,23 @@ def test_the_readme_is_a_short_page_for_users():
     text = (ROOT / "README.md").read_text()
     assert len(text.encode()) <= 12 * 1024
     assert "make demo" in text.split("\n## ")[0] and "make test" in text.split("\n## ")[0]
+
+
+def test_each_setting_carries_its_unit_and_meaning_in_the_code():
+    """Units and meanings live in the config dataclasses' field metadata (``setting``), not in
+    comments: every key has a meaning, a key named for its unit carries that unit, and the
+    time, angle and rate settings say theirs."""
+    keys = {(k.step, k.name): k for step in step_docs.STEP_CONFIGS
+            for k in step_docs.config_keys(step)}
+    assert all(k.meaning for k in keys.values())
+    for (step, name), key in keys.items():
+        for suffix, unit in (("_arcmin_per_min", "arcmin / min"), ("_arcsec", "arcsec"),
+                             ("_deg", "deg"), ("_mjy", "mJy")):
+            if name.endswith(suffix):
+                assert key.unit == unit, (step, name)
+    expect = {("transient_fit", "window"): "s", ("transient_fit", "local_window"): "s",
+              ("transient_filter", "white_band"): "Hz", ("transient_filter", "highpass"): "Hz",
+              ("transient_jumps", "window"): "s", ("transient_pca_mask", "block"): "s",
+              ("transient_significance", "max_far"): "1 / h",
+              ("transient_find", "coherent_threshold"): "Z"}
+    assert {k: keys[k].unit for k in expect} == expect

@@ -5,9 +5,8 @@ Directives
 ``.. step-config:: transient_find``
     One table per config dataclass of the step (the step's entry of
     ``so_transients.preprocess.step_settings.STEP_CONFIGS``): every key (YAML name), its
-    default, unit and meaning. Keys and defaults come from ``dataclasses.fields``; the meaning
-    is the trailing ``# comment`` of the field's source line (with its continuation lines), or
-    else the comment of the key in the step's docstring example block. Each row carries the HTML id
+    default, unit and meaning, from ``dataclasses.fields`` and each field's metadata
+    (:func:`so_transients.common.step_config.setting`). Each row carries the HTML id
     ``config-<step>-<key>`` (underscores as hyphens), which :func:`missing_from_docs` looks for.
 ``.. candidate-columns::``
     Every candidate column of :data:`so_transients.common.candidates.SCHEMA` saved to the
@@ -23,13 +22,10 @@ for the candidate columns. The pytest file calls them after ``sphinx-build``.
 """
 from __future__ import annotations
 
-import ast
 import dataclasses
 import inspect
-import io
 import re
 import textwrap
-import tokenize
 from dataclasses import dataclass
 from html.parser import HTMLParser
 from pathlib import Path
@@ -41,29 +37,6 @@ from so_transients.preprocess import step_settings
 from so_transients.preprocess.step_settings import STEP_CONFIGS
 
 STEP_PREFIX = "transient_"
-
-#: Units the key's name and comment do not give (a key ending in ``_arcmin``, ``_deg``,
-#: ``_hz``, ``_s``, ``_arcsec``, ``_mjy`` or ``_arcmin_per_min`` has that unit, and a comment
-#: opening with ``s``, ``Hz``, ``deg`` or ``mJy`` names it).
-UNITS = {
-    "transient_filter": {"white_band": "Hz", "edge_buffer": "s", "mask_buffer": "s",
-                         "knee_bounds": "Hz"},
-    "transient_find": {"snr_threshold": "S/N", "coherent_threshold": "Z",
-                       "row_step": "beam sigma", "hit_reach": "beam sigma",
-                       "stack_seed": "Z", "turnaround_buffer": "s"},
-    "transient_cuts": {"sidelobe_window": "s"},
-    "transient_significance": {"slide_gate": "Z", "row_step": "beam sigma",
-                               "background_floor": "Z", "slide_floor": "Z",
-                               "peak_window": "beam-crossing times", "max_far": "1 / h",
-                               "tail_from": "Z", "sidelobe_window": "s"},
-    "transient_fit": {"window": "s", "cross_scan_sigma": "beam sigma", "min_snr": "S/N"},
-}
-
-_SUFFIX_UNITS = (("_arcmin_per_min", "arcmin / min"), ("_arcmin", "arcmin"),
-                 ("_arcsec", "arcsec"), ("_deg", "deg"), ("_hz", "Hz"), ("_mjy", "mJy"),
-                 ("_s", "s"))
-_COMMENT_UNIT = re.compile(r"^(s|Hz|deg|mJy)(?=[,;:)\s]|$)")
-
 
 @dataclass(frozen=True)
 class ConfigKey:
@@ -99,35 +72,6 @@ def config_classes(step) -> list:
     return list(STEP_CONFIGS[step])
 
 
-def _field_comments(cls) -> dict:
-    """``{field: (comment, continues_previous)}`` from the class source: the trailing comment
-    of each field's line(s) plus the comment-only lines that continue it (before the next
-    field, ``#`` followed by at least two spaces, the text aligned under the comment's).
-    ``continues_previous``: the trailing comment itself opens with two spaces, carrying on
-    the previous field's."""
-    source = textwrap.dedent(inspect.getsource(cls))
-    comments = {}
-    for tok in tokenize.generate_tokens(io.StringIO(source).readline):
-        if tok.type == tokenize.COMMENT:
-            comments[tok.start[0]] = (tok.string[1:], tok.line.strip().startswith("#"))
-    body = ast.parse(source).body[0].body
-    lines = [(node.target.id, node.lineno, node.end_lineno) for node in body
-             if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)]
-    starts = [lo for _, lo, _ in lines[1:]] + [len(source.splitlines()) + 1]
-    out = {}
-    for (name, lo, hi), nxt in zip(lines, starts):
-        own = [comments[n][0] for n in range(lo, hi + 1) if n in comments]
-        if not own:
-            continue
-        text = own[-1]
-        n = hi + 1
-        while n < nxt and n in comments and comments[n][1] and comments[n][0][:2] == "  ":
-            text += " " + comments[n][0]
-            n += 1
-        out[name] = (text, own[-1][:2] == "  ")
-    return out
-
-
 def example_block(process_cls) -> dict:
     """``{key: comment}`` of the example config block in a process class's docstring (the
     literal block after a line ending in ``::`` that holds ``- name:``)."""
@@ -152,18 +96,6 @@ def example_block(process_cls) -> dict:
     return out
 
 
-def _clean(text, unit=""):
-    """A comment as a table cell: one line, no leading or trailing "...", YAML's null for
-    None, and without a leading unit the unit column shows."""
-    text = " ".join(text.split())
-    text = re.sub(r"^\.\.\.\s*", "", text)
-    text = re.sub(r"\s*\.\.\.$", "", text)
-    text = re.sub(r"\bNone\b", "null", text)
-    if unit and text.startswith(unit):
-        text = re.sub(r"^" + re.escape(unit) + r"[,;:]?\s+", "", text)
-    return text
-
-
 def _yaml(value):
     if value is None:
         return "null"
@@ -184,21 +116,6 @@ def _default(f):
     return dataclasses.MISSING
 
 
-def _unit(step, name, *comments):
-    if name in UNITS.get(step, {}):
-        return UNITS[step][name]
-    for suffix, unit in _SUFFIX_UNITS:
-        if name.endswith(suffix):
-            return unit
-    for comment in comments:
-        m = _COMMENT_UNIT.match(_clean(comment or ""))
-        if m:
-            return m.group(1)
-        if "per wafer-band-hour" in (comment or ""):
-            return "1 / h"
-    return ""
-
-
 def _fields(cls):
     """(field, its dataclass) of every YAML key of ``cls``, nested dataclasses flattened."""
     for f in dataclasses.fields(cls):
@@ -212,29 +129,23 @@ def _fields(cls):
 
 
 def config_keys(step) -> list:
-    """Every key of ``step``'s config dataclasses as :class:`ConfigKey`, in source order."""
-    steps = registered_steps()
-    example = example_block(steps[step]) if step in steps else {}
+    """Every key of ``step``'s config dataclasses as :class:`ConfigKey`, in source order. A
+    :class:`LookupError` names a field declared without :func:`~so_transients.common.
+    step_config.setting` (no unit and meaning to show)."""
     out, seen = [], set()
     for cls in config_classes(step):
-        comments = {}
-        for klass in {c for _, c in _fields(cls)}:
-            comments.update(_field_comments(klass))
         for f, owner in _fields(cls):
             if f.name in seen:
                 continue
             seen.add(f.name)
-            own, continues = comments.get(f.name, ("", False))
-            doc = example.get(f.name, "")
-            unit = _unit(step, f.name, own, doc)
-            if own and not continues:
-                meaning = _clean(own, unit)
-            else:
-                meaning = _clean(doc or own, unit)
+            where = f"{owner.__module__}.{owner.__qualname__}"
+            if "doc" not in f.metadata:
+                raise LookupError(f"{where}.{f.name} has no meaning: declare it with "
+                                  f"so_transients.common.step_config.setting")
             default = _default(f)
-            out.append(ConfigKey(step, f.name, f"{owner.__module__}.{owner.__qualname__}",
+            out.append(ConfigKey(step, f.name, where,
                                  "" if default is dataclasses.MISSING else _yaml(default),
-                                 unit, meaning))
+                                 f.metadata["unit"], f.metadata["doc"]))
     return out
 
 

@@ -14,4 +14,6 @@ campaign folder and :mod:`.flare_injection` for the fast injection path.
 - :mod:`.events_check`: the events step measured on simulated flares
 - :mod:`.score_training`: the real-or-artefact score trained on simulated real wafers
 - :mod:`.command`: ``so-transients study`` and its studies
+- :mod:`.drawn_wafer`, :mod:`.real_wafer`: realization studies on simulated real wafers;
+  :mod:`.provenance`: the commit and day a study's table records
 """

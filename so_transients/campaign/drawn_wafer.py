@@ -14,7 +14,8 @@ band the reference paper measures), with
 * readout jumps of +-1-10 Jy on 1-20 % of the detectors, 1 to 2-12 each; cosmic rays
   (30-1500 an hour) on 5-40 detectors at once.
 
-:func:`run_shipped` runs a shipped site config (``configs/``), as it is, on the realization.
+:func:`run_shipped` runs a shipped site config (``configs/``), as it is, on the realization;
+:func:`config_summaries` sums a study's table per config, as the results page quotes it.
 """
 from __future__ import annotations
 
@@ -88,3 +89,21 @@ def run_shipped(sim, root, mode):
     if failed:
         raise RuntimeError(f"{config}: failed groups:\n{failed}")
     return read_detections(config), config
+
+
+def config_summaries(out) -> list:
+    """One row of Markdown cells per config of ``out``, over its realizations: 3 Jy flares
+    found and placed within 10 % and 0.2', the worst flux ratio and largest offset, 900 mJy
+    flares found, unmatched and mislocated detections (the results page quotes these)."""
+    rows = []
+    for config in sorted(set(out["config"])):
+        r = out[out["config"] == config]
+        good, crossed = int(np.sum(r["bright_good"])), int(np.sum(r["bright_crossed"]))
+        rows.append([config, str(len(r)),
+                     f"{int(np.sum(r['bright_found']))} / {crossed}",
+                     f"{good} ({100 * good / crossed:.1f} %)",
+                     f"{np.nanmin(r['flux_ratio_worst']):.3f}",
+                     f"{np.nanmax(r['offset_max_arcmin']):.2f}",
+                     f"{int(np.sum(r['faint_found']))} / {int(np.sum(r['faint_crossed']))}",
+                     str(int(np.sum(r["unmatched"]))), str(int(np.sum(r["mislocated"])))])
+    return rows

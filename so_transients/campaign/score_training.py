@@ -40,9 +40,7 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
 from dataclasses import asdict, dataclass, field
-from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +50,7 @@ from tqdm.auto import tqdm
 
 from so_transients.campaign.config import read_study_config
 from so_transients.campaign.matching import group_crossings, match
+from so_transients.campaign.provenance import commit, today
 from so_transients.campaign.real_wafer import run_mode
 from so_transients.common.angles import ARCMIN
 from so_transients.common.bands import get_band
@@ -256,14 +255,6 @@ def measure(model: ScoreModel, table: Table, min_snr=5.0, recalls=(0.99, 0.999))
     return out
 
 
-def _commit():
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
-                              capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return ""
-
-
 def _per_flare(values, source, how):
     """``how`` (np.max, np.any) of ``values`` over each flare's real candidates."""
     return np.array([how(values[source == f]) for f in np.unique(source)])
@@ -307,7 +298,7 @@ def train_and_measure(cfg) -> tuple[ScoreModel, dict]:
     settings = {k: v for k, v in asdict(cfg).items() if k != "output"}   # a local folder
     trained = {"config": getattr(cfg, "source", ""),
                "settings": json.loads(json.dumps(settings, default=str)),
-               "commit": _commit(), "date": datetime.now(timezone.utc).strftime("%Y-%m-%d")}
+               "commit": commit(), "date": today()}
     model = train_model(train[use], np.asarray(train["label"])[use], cfg.seed, cfg.version,
                         trained, **cfg.forest)
     figures = {kind: measure(model, read_set(cfg, kind)) for kind in ("test", "scan")}

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from so_transients.common.step_config import ConfigError, from_yaml_parts, positive, share
+from so_transients.common.step_config import ConfigError, from_yaml_parts, positive, share, setting
 from so_transients.coherent.joint import DEFAULT_INDICES
 from so_transients.coherent.sweep_stack import StackSettings
 from so_transients.coherent.vetoes import Vetoes
@@ -18,27 +18,37 @@ from so_transients.detect.find import FindConfig
 
 @dataclass
 class CoherentConfig:
-    coherent_threshold: float = 4.5   # coherent mode: Z of a maximum, in measured spreads
-    row_step: float = 0.8             # coherent mode: beam sigmas between rows of positions
-    max_single_share: float = 0.5     # coherent veto: a maximum one detector makes more than this share of
-    #                                   is removed
-    max_instant_share: float = 0.5    # coherent veto: a maximum the detectors crossed at one instant make
-    #                                   more than this share of is removed (a cosmic ray)
-    chi2_bins: int = 6                # coherent veto: chi-squared test over this many detector groups
-    #                                   (0: no test)
-    chi2_tail: float = 1e-3           # chi-squared test: the share of noise maxima it fails
-    chi2_mismatch: float = 0.15       # chi-squared test: model error allowed, as a share of Z
-    hit_reach: float = 2.0            # coherent mode: a candidate's hits are the detectors within this many
-    #                                   beam sigmas
-    stack_window: float | None = None  # s; sweep stacking: crossings within this window are stacked
-    #                                    (None: no sweep stacking)
-    stack_seed: float = 3.0           # sweep stacking: stacks start from single-crossing maxima this high
-    stack_max_share: float = 0.7      # sweep stacking: no crossing may make more than this share of a
-    #                                   stack's sum
-    joint_bands: bool = False         # coherent mode: a group holding both bands of a dichroic wafer
-    #                                   (subobs use: [wafer_slot]) is searched with the joint-band
-    #                                   statistic J (docs: the coherent search)
-    spectral_indices: tuple = DEFAULT_INDICES   # joint_bands: J is maximised over these
+    coherent_threshold: float = setting(4.5, "Z", "coherent mode: Z of a maximum, in measured spreads")
+    row_step: float = setting(0.8, "beam sigma", "coherent mode: beam sigmas between rows of positions")
+    max_single_share: float = setting(
+        0.5, "",
+        "coherent veto: a maximum one detector makes more than this share of is removed")
+    max_instant_share: float = setting(
+        0.5, "",
+        "coherent veto: a maximum the detectors crossed at one instant make more than this share of is "
+        "removed (a cosmic ray)")
+    chi2_bins: int = setting(
+        6, "",
+        "coherent veto: chi-squared test over this many detector groups (0: no test)")
+    chi2_tail: float = setting(1e-3, "", "chi-squared test: the share of noise maxima it fails")
+    chi2_mismatch: float = setting(0.15, "", "chi-squared test: model error allowed, as a share of Z")
+    hit_reach: float = setting(
+        2.0, "beam sigma",
+        "coherent mode: a candidate's hits are the detectors within this many beam sigmas")
+    stack_window: float | None = setting(
+        None, "s",
+        "sweep stacking: crossings within this window are stacked (null: no sweep stacking)")
+    stack_seed: float = setting(
+        3.0, "Z",
+        "sweep stacking: stacks start from single-crossing maxima this high")
+    stack_max_share: float = setting(
+        0.7, "",
+        "sweep stacking: no crossing may make more than this share of a stack's sum")
+    joint_bands: bool = setting(
+        False, "",
+        "coherent mode: a group holding both bands of a dichroic wafer (subobs use: [wafer_slot]) is "
+        "searched with the joint-band statistic J (docs: the coherent search)")
+    spectral_indices: tuple = setting(DEFAULT_INDICES, "", "joint_bands: J is maximised over these")
 
     def __post_init__(self):
         positive("transient_find", coherent_threshold=self.coherent_threshold,

@@ -2,8 +2,9 @@
 
 Each step's settings live in one dataclass (defaults there only, in the units of the YAML
 keys: a key ending in ``_arcmin``, ``_deg`` or ``_hz`` is in that unit, and the dataclass
-offers the radians/Hz value as a property). :func:`from_yaml` converts a YAML mapping into it
-once, when sotodlib builds the pipeline, and refuses a misspelt key or a value of the wrong
+offers the radians/Hz value as a property). Each field is a :func:`setting`: its default,
+unit and meaning, which the documentation's tables read. :func:`from_yaml` converts a YAML
+mapping into it once, when sotodlib builds the pipeline, and refuses a misspelt key or a value of the wrong
 type with one line naming the step and the key, before any data are read.
 """
 from __future__ import annotations
@@ -14,6 +15,16 @@ import difflib
 
 class ConfigError(ValueError):
     """A step's config has an unknown key or a value that cannot be used."""
+
+
+def setting(default=dataclasses.MISSING, unit: str = "", doc: str = "", **field_kwargs):
+    """A config dataclass field with its ``unit`` ('' when it has none) and its meaning
+    ``doc`` in the field's metadata (``dataclasses.fields(cls)[i].metadata``), where the
+    documentation's tables read them."""
+    if not doc:
+        raise ValueError("a setting needs its meaning (doc)")
+    return dataclasses.field(default=default, metadata={"unit": unit, "doc": doc},
+                             **field_kwargs)
 
 
 def _convert(value, hint, where):
@@ -118,5 +129,6 @@ class ChunkConfig:
     """The one key of ``transient_fourier_filter`` and ``transient_glitches`` that is not
     sotodlib's (all their other keys are those of ``fourier_filter`` and ``glitches``)."""
 
-    chunk_dets: int = 32        # detectors filtered at a time (a chunk's FFT buffers: about
-    #                             100 MB each for one hour at f090)
+    chunk_dets: int = setting(
+        32, "", "detectors filtered at a time (a chunk's FFT buffers: about 100 MB each for one "
+        "hour at f090)")

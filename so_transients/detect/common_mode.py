@@ -18,7 +18,7 @@ from numba import njit
 from numpy.lib.stride_tricks import sliding_window_view
 
 from so_transients.common.robust import mad_std
-from so_transients.common.step_config import positive
+from so_transients.common.step_config import positive, setting
 
 
 def median_last(a):
@@ -57,12 +57,12 @@ def block_times(n, n_block):
 class ExcursionConfig:
     """Settings of the ``transient_pca_mask`` step (:func:`mask_excursions`)."""
 
-    signal: str = "lpf_signal"  # the PCA's model signal (pca_filter's model_signal)
-    threshold: float = 5.0      # samples this many times a detector's spread beyond its baseline
-    block: float = 0.25         # seconds of each block median
-    window: float = 2.0         # seconds of blocks whose median is the baseline beyond the share
-    buffer: float = 0.2         # seconds masked around each excursion
-    chunk_dets: int = 64        # detectors whose block medians are taken at once (memory)
+    signal: str = setting("lpf_signal", "", "the PCA's model signal (pca_filter's model_signal)")
+    threshold: float = setting(5.0, "", "samples this many times a detector's spread beyond its baseline")
+    block: float = setting(0.25, "s", "of each block median")
+    window: float = setting(2.0, "s", "of blocks whose median is the baseline beyond the share")
+    buffer: float = setting(0.2, "s", "masked around each excursion")
+    chunk_dets: int = setting(64, "", "detectors whose block medians are taken at once (memory)")
 
     def __post_init__(self):
         positive("transient_pca_mask", threshold=self.threshold, block=self.block,

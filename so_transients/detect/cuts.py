@@ -37,25 +37,32 @@ from so_transients.common.angles import ARCMIN
 from so_transients.common.sky_match import within_radius
 from so_transients.detect.find import FindConfig
 from so_transients.common.robust import mad_std
-from so_transients.common.step_config import positive, share
+from so_transients.common.step_config import positive, share, setting
 
 CUT_ORDER = ("n_dets", "aspect_ratio", "time_order", "sidelobe", "known_source")
 
 
 @dataclass
 class CutsConfig:
-    min_aspect_ratio: float = 1.5       # detectors must form a line along the scan: focal-plane extent
-    #                                     along / across the scan at least this
-    time_tolerance: float = 0.02        # s, rms of peak times about the drift model
-    known_sources: str | None = None    # ECSV/CSV with ra, dec, or a socat URL (socat:///x.db)
-    known_sources_unit: str = "deg"     # unit of ra/dec when the file does not carry one
-    mask_radius_arcmin: float | None = None   # known-source mask radius; None: sigma_FWHM of the band
-    pol_fraction: float = 0.8           # polarization flag (not a cut) when at least this fraction of the
-    #                                     detectors share one orientation
-    sidelobe_window: float = 1.0        # seconds around the candidate's peaks searched for a signal of
-    #                                     opposite sign
-    max_opposite_ratio: float = 2.0     # cut when a signal of opposite sign within sidelobe_window is this
-    #                                     many times stronger (a filter sidelobe of a strong negative signal)
+    min_aspect_ratio: float = setting(
+        1.5, "",
+        "detectors must form a line along the scan: focal-plane extent along / across the scan at least this")
+    time_tolerance: float = setting(0.02, "s", "rms of peak times about the drift model")
+    known_sources: str | None = setting(None, "", "ECSV/CSV with ra, dec, or a socat URL (socat:///x.db)")
+    known_sources_unit: str = setting("deg", "", "unit of ra/dec when the file does not carry one")
+    mask_radius_arcmin: float | None = setting(
+        None, "arcmin",
+        "known-source mask radius; null: sigma_FWHM of the band")
+    pol_fraction: float = setting(
+        0.8, "",
+        "polarization flag (not a cut) when at least this fraction of the detectors share one orientation")
+    sidelobe_window: float = setting(
+        1.0, "s",
+        "around the candidate's peaks searched for a signal of opposite sign")
+    max_opposite_ratio: float = setting(
+        2.0, "",
+        "cut when a signal of opposite sign within sidelobe_window is this many times stronger (a filter "
+        "sidelobe of a strong negative signal)")
 
     def __post_init__(self):
         positive("transient_cuts", min_aspect_ratio=self.min_aspect_ratio,

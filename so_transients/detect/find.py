@@ -28,7 +28,7 @@ from so_transients.common import candidates
 from so_transients.common.angles import ARCMIN, mean_direction, tangent_offsets
 from so_transients.detect.dbscan import dbscan_labels
 from so_transients.common.scan_geometry import constant_velocity, samples_in
-from so_transients.common.step_config import ConfigError, non_negative, positive
+from so_transients.common.step_config import ConfigError, non_negative, positive, setting
 
 log = logging.getLogger(__name__)
 
@@ -40,21 +40,28 @@ SCAN_FIELD = "transient_scan"
 
 @dataclass
 class FindConfig:
-    snr_threshold: float = 3.0        # paper mode: samples with matched-filter S/N at least this are
-    #                                   clustered
-    eps_arcmin: float | None = None   # DBSCAN scale; None: sigma_FWHM of the band
-    dbscan_min_samples: int = 5       # DBSCAN core-point neighbourhood (scikit-learn default)
-    min_cluster_samples: int = 11     # fewest samples of a cluster (the paper's "more than 10")
-    min_dets: int = 5                 # fewest detectors of a candidate (paper mode: of a cluster; coherent
-    #                                   mode: live detectors a band needs)
-    max_candidates: int = 2000        # most candidates per group; the rest are dropped with a warning
-    speed_tolerance: float = 0.1      # samples scanning further than this fraction off the nominal scan
-    #                                   speed are not searched
-    turnaround_buffer: float = 0.0    # seconds left out around the samples off the nominal scan speed
-    #                                   (turnarounds)
-    archive_slots: int = 4            # catalogue cells per detector in the archive
-    mode: str = "paper"               # "paper": S/N >= 3 clusters; "coherent": maxima of Z
-    #                                   (its settings: so_transients.coherent.config)
+    snr_threshold: float = setting(
+        3.0, "S/N",
+        "paper mode: samples with matched-filter S/N at least this are clustered")
+    eps_arcmin: float | None = setting(None, "arcmin", "DBSCAN scale; null: sigma_FWHM of the band")
+    dbscan_min_samples: int = setting(5, "", "DBSCAN core-point neighbourhood (scikit-learn default)")
+    min_cluster_samples: int = setting(11, "", "fewest samples of a cluster (the paper's \"more than 10\")")
+    min_dets: int = setting(
+        5, "",
+        "fewest detectors of a candidate (paper mode: of a cluster; coherent mode: live detectors a band "
+        "needs)")
+    max_candidates: int = setting(2000, "", "most candidates per group; the rest are dropped with a warning")
+    speed_tolerance: float = setting(
+        0.1, "",
+        "samples scanning further than this fraction off the nominal scan speed are not searched")
+    turnaround_buffer: float = setting(
+        0.0, "s",
+        "left out around the samples off the nominal scan speed (turnarounds)")
+    archive_slots: int = setting(4, "", "catalogue cells per detector in the archive")
+    mode: str = setting(
+        "paper", "",
+        "\"paper\": S/N >= 3 clusters; \"coherent\": maxima of Z (its settings: "
+        "so_transients.coherent.config)")
 
     def __post_init__(self):
         if not self.snr_threshold >= 2.0:

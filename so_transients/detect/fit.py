@@ -39,7 +39,7 @@ from so_transients.common.angles import ARCSEC, DEG
 from so_transients.detect.find import SCAN_FIELD
 from so_transients.common.robust import clipped_std
 from so_transients.common.scan_geometry import constant_velocity, samples_in
-from so_transients.common.step_config import ConfigError, non_negative, positive, share
+from so_transients.common.step_config import ConfigError, non_negative, positive, share, setting
 
 #: The scan-speed tolerance ``transient_find`` stores in ``aman.transient_candidates``.
 SPEED_TOLERANCE = "speed_tolerance"
@@ -50,30 +50,37 @@ FIT_FIELDS = ("flux", "flux_err", "dxi", "deta", "dxi_err", "deta_err", "offset"
 
 @dataclass
 class FitConfig:
-    window: float = 0.5          # s, half-width of the time window around the median time
-    radius_deg: float = 1.0      # samples within this distance of the candidate are fitted
-    min_snr: float = 5.0         # keep A0 / sigma_A >= min_snr
-    cross_scan_sigma: float = 6.0  # detectors passing within this many beam sigmas are fitted
-    #                                (the 3 sigma position range plus 3 sigma of beam)
-    n_null: int = 200            # random positions used to measure the error scale
-    local_window: float | None = None  # s: a significant fit's error scale is also measured
-    #                                    within this of it, and the larger of the two is used
-    #                                    (None: the group's only; not with a fixed
-    #                                    error_scale)
-    n_null_local: int = 400      # random positions of that local measurement
-    seed: int = 0                # seed of the random null positions
-    error_scale: float | None = None   # fixed error scale (None: measured on the group)
-    max_motion_arcmin_per_min: float = 5.0   # detections this far apart per time are linked
-    min_motion_arcmin_per_min: float = 0.1   # a linked set moving faster is a moving source
-    motion_floor_arcsec: float = 10.0        # position error floor for the motion test
-    max_peak_ratio: float | None = None      # not detected: snr_max > this x snr_fit (None: off)
-    max_split_sigma: float | None = 5.0      # not detected: the fits of two halves of the
-    #                                          detectors disagree by more than this many errors
-    #                                          (split_sigma; None: not checked)
-    split_floor_arcsec: float = 10.0         # position error floor of that comparison ...
-    split_floor_flux: float = 0.1            # ... and flux error floor, of the flux
-    score_model: str | None = None           # real-or-artefact model: a file, or "shipped"
-    min_real_score: float | None = None      # not detected: real_score below this (None: off)
+    window: float = setting(0.5, "s", "half-width of the time window around the median time")
+    radius_deg: float = setting(1.0, "deg", "samples within this distance of the candidate are fitted")
+    min_snr: float = setting(5.0, "S/N", "keep A0 / sigma_A >= min_snr")
+    cross_scan_sigma: float = setting(
+        6.0, "beam sigma",
+        "detectors passing within this many beam sigmas are fitted (the 3 sigma position range plus 3 sigma "
+        "of beam)")
+    n_null: int = setting(200, "", "random positions used to measure the error scale")
+    local_window: float | None = setting(
+        None, "s",
+        "a significant fit's error scale is also measured within this of it, and the larger of the two is "
+        "used (null: the group's only; not with a fixed error_scale)")
+    n_null_local: int = setting(400, "", "random positions of that local measurement")
+    seed: int = setting(0, "", "seed of the random null positions")
+    error_scale: float | None = setting(None, "", "fixed error scale (null: measured on the group)")
+    max_motion_arcmin_per_min: float = setting(
+        5.0, "arcmin / min",
+        "detections this far apart per time are linked")
+    min_motion_arcmin_per_min: float = setting(
+        0.1, "arcmin / min",
+        "a linked set moving faster is a moving source")
+    motion_floor_arcsec: float = setting(10.0, "arcsec", "position error floor for the motion test")
+    max_peak_ratio: float | None = setting(None, "", "not detected: snr_max > this x snr_fit (null: off)")
+    max_split_sigma: float | None = setting(
+        5.0, "",
+        "not detected: the fits of two halves of the detectors disagree by more than this many errors "
+        "(split_sigma; null: not checked)")
+    split_floor_arcsec: float = setting(10.0, "arcsec", "position error floor of that comparison")
+    split_floor_flux: float = setting(0.1, "", "flux error floor of that comparison, as a share of the flux")
+    score_model: str | None = setting(None, "", "real-or-artefact model: a file, or \"shipped\"")
+    min_real_score: float | None = setting(None, "", "not detected: real_score below this (null: off)")
 
     def __post_init__(self):
         positive("transient_fit", window=self.window, radius_deg=self.radius_deg,

@@ -31,7 +31,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 from so_transients.common.robust import mad_std
-from so_transients.common.step_config import positive
+from so_transients.common.step_config import positive, setting
 from so_transients.detect.common_mode import block_medians, block_times, common_share, median_last
 
 
@@ -111,10 +111,10 @@ def remove_jumps(rows, sample_rate, window=2.0, block=0.25, threshold=8.0):
 class JumpConfig:
     """Settings of the ``transient_jumps`` step (:func:`remove_common_jumps`)."""
 
-    threshold: float = 8.0      # a jump changes the median level by this many times its spread
-    window: float = 2.0         # seconds of median level compared on each side of a jump
-    block: float = 0.25         # seconds of each block median
-    chunk_dets: int = 64        # detectors whose block medians are taken at once (memory)
+    threshold: float = setting(8.0, "", "a jump changes the median level by this many times its spread")
+    window: float = setting(2.0, "s", "of median level compared on each side of a jump")
+    block: float = setting(0.25, "s", "of each block median")
+    chunk_dets: int = setting(64, "", "detectors whose block medians are taken at once (memory)")
 
     def __post_init__(self):
         positive("transient_jumps", threshold=self.threshold, window=self.window,

@@ -62,7 +62,7 @@ from so_transients.detect import spectral_ops
 from so_transients.common.angles import ARCMIN
 from so_transients.common.bands import PAPER_KNEE_HZ, nominal_fwhm_arcmin
 from so_transients.common.robust import mad_std
-from so_transients.common.step_config import non_negative, positive
+from so_transients.common.step_config import non_negative, positive, setting
 from so_transients.detect.jumps import remove_jumps
 
 try:        # scipy's own FFTs, writing into arrays given to them
@@ -92,33 +92,44 @@ class FilterConfig:
     """Parameters of :func:`matched_filter` (times in seconds, frequencies in Hz), and of the
     ``transient_filter`` step around it (band field, beam widths, masked flags)."""
 
-    highpass: float | str | None = PAPER_KNEE_HZ   # Hz; high-pass frequency of the 4th-order Butterworth
-    #                                                (the atmospheric knee); "fit": a knee fitted per detector
-    order: int = 4                         # Butterworth order
-    white_band: tuple = (10.0, 30.0)       # band where the PSD is white, for the noise level
-    bins_per_decade: int = 40              # PSD smoothing: bins per decade of frequency
-    edge_buffer: float = 5.0               # seconds at each end of the TOD where nothing is detected
-    mask_buffer: float = 0.2               # seconds around masked or non-finite samples where nothing
-    #                                        is detected
-    chunk_dets: int = 16                   # detectors per FFT batch (kept in cache)
-    bright_bias: float | None = 0.02       # detectors whose own source may bias their PSD by more than
-    #                                        this fraction are filtered again with it masked (None: never)
-    source_mask_snr: float = 3.0           # detectors filtered again (bright_bias) have their PSD
-    #                                        re-estimated with the samples above this S/N masked
-    workers: int = 1                       # threads, each filtering its own chunks
-    knee_bounds: tuple = (0.05, 10.0)      # limits of a fitted knee
-    min_noise_ratio: float = 0.3           # detectors quieter than this x the median: dead
-    max_noise_ratio: float = 5.0           # detectors noisier than this x the median: not used
-    max_excluded: float = 0.3              # warn, naming the group, when more than this fraction of
-    #                                        its detectors cannot be used
-    jump_threshold: float | None = 8.0     # readout jumps (steps of a detector's median level, this
-    #                                        many times its spread) are removed before filtering;
-    #                                        None: not looked for (so_transients.detect.jumps)
-    jump_window: float = 2.0               # seconds of median level compared on each side of a jump
-    bandpass_field: str = "bandpass"       # det_info field holding each detector's band
-    beam_fwhm_arcmin: dict = field(default_factory=dict)   # beam FWHM per band; nominal ones for the
-    #                                                        bands it does not name
-    mask_flags: list = field(default_factory=list)         # aman.flags fields to ignore
+    highpass: float | str | None = setting(
+        PAPER_KNEE_HZ, "Hz",
+        "high-pass frequency of the 4th-order Butterworth (the atmospheric knee); \"fit\": a knee fitted per "
+        "detector")
+    order: int = setting(4, "", "Butterworth order")
+    white_band: tuple = setting((10.0, 30.0), "Hz", "band where the PSD is white, for the noise level")
+    bins_per_decade: int = setting(40, "", "PSD smoothing: bins per decade of frequency")
+    edge_buffer: float = setting(5.0, "s", "at each end of the TOD where nothing is detected")
+    mask_buffer: float = setting(
+        0.2, "s",
+        "around masked or non-finite samples where nothing is detected")
+    chunk_dets: int = setting(16, "", "detectors per FFT batch (kept in cache)")
+    bright_bias: float | None = setting(
+        0.02, "",
+        "detectors whose own source may bias their PSD by more than this fraction are filtered again with it"
+        " masked (null: never)")
+    source_mask_snr: float = setting(
+        3.0, "",
+        "detectors filtered again (bright_bias) have their PSD re-estimated with the samples above this S/N "
+        "masked")
+    workers: int = setting(1, "", "threads, each filtering its own chunks")
+    knee_bounds: tuple = setting((0.05, 10.0), "Hz", "limits of a fitted knee")
+    min_noise_ratio: float = setting(0.3, "", "detectors quieter than this x the median: dead")
+    max_noise_ratio: float = setting(5.0, "", "detectors noisier than this x the median: not used")
+    max_excluded: float = setting(
+        0.3, "",
+        "warn, naming the group, when more than this fraction of its detectors cannot be used")
+    jump_threshold: float | None = setting(
+        8.0, "",
+        "readout jumps (steps of a detector's median level, this many times its spread) are removed before "
+        "filtering; null: not looked for (so_transients.detect.jumps)")
+    jump_window: float = setting(2.0, "s", "of median level compared on each side of a jump")
+    bandpass_field: str = setting("bandpass", "", "det_info field holding each detector's band")
+    beam_fwhm_arcmin: dict = setting(
+        unit="arcmin",
+        doc="beam FWHM per band; nominal ones for the bands it does not name",
+        default_factory=dict)
+    mask_flags: list = setting(unit="", doc="aman.flags fields to ignore", default_factory=list)
 
     def __post_init__(self):
         if self.highpass == "fit":

@@ -20,15 +20,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from so_transients.common.step_config import positive
+from so_transients.common.step_config import positive, setting
 
 
 @dataclass
 class PcaConfig:
     """Settings of the ``transient_pca_filter`` step (:func:`pca_filter`)."""
 
-    n_modes: int = 10           # strongest principal components subtracted (sotodlib's n_modes)
-    block: int = 8192           # samples per block of the covariance and the subtraction
+    n_modes: int = setting(10, "", "strongest principal components subtracted (sotodlib's n_modes)")
+    block: int = setting(8192, "", "samples per block of the covariance and the subtraction")
 
     def __post_init__(self):
         positive("transient_pca_filter", n_modes=self.n_modes, block=self.block)

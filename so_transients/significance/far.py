@@ -44,7 +44,7 @@ from so_transients.coherent.statistic import (
     row_weights, term_shares, window_max
 )
 from so_transients.common.scan_geometry import sample_rate as rate_of  # (``sample_rate``: Hz)
-from so_transients.common.step_config import ConfigError, non_negative, positive, share
+from so_transients.common.step_config import ConfigError, non_negative, positive, share, setting
 from so_transients.significance.slide_groups import (
     gate_maxima, group_offsets, group_sum, partial_maps, scan_groups
 )
@@ -59,31 +59,41 @@ from so_transients.significance.tail_model import model_count_above
 
 @dataclass
 class SignificanceConfig:
-    n_slides: int | None = 100       # time slides per scan: background live time / data's
-    #                                  (0: none, far from the sign-inverted data alone; None:
-    #                                  as many as max_far needs, see slides_for)
-    min_slide_s: float = 2.0         # every detector is shifted at least this far
-    slide_groups: int = 4            # detectors slid alike in this many random groups (0:
-    #                                  each its own offset, about 4x the cost at f090)
-    slide_gate: float = 6.0          # grouped slides: the data's maxima from this Z (real
-    #                                  sources) are gated out of what is slid
-    row_step: float = 0.8            # beam sigmas between rows of positions
-    background_floor: float = 3.0    # background maxima counted from this Z
-    slide_floor: float = 4.5         # slides' maxima counted from this Z (below it, far
-    #                                  rests on the sign-inverted data, which resolves it)
-    peak_window: float = 2.0         # beam-crossing times searched around a candidate
-    max_single_share: float = 0.5    # background maxima one detector makes more than this share of are
-    #                                  left out
-    max_far: float | None = None     # candidates with a false-alarm rate (per wafer-band-hour) above this
-    #                                  are not detected; None: far is reported, not cut
-    seed: int = 0                    # seed of the time slides' random offsets and groups
-    tail_from: float | None = 3.5    # inverted data's maxima modelled from this Z; None: off
-    sidelobe_window: float = 1.0     # seconds: sign-inverted maxima this close to a data maximum and
-    #                                  max_opposite_ratio times higher are its filter sidelobe, left out
-    #                                  of the background
-    max_opposite_ratio: float = 2.0  # sign-inverted maxima within sidelobe_window of a data maximum and
-    #                                  this many times higher are its filter sidelobe, left out of the
-    #                                  background
+    n_slides: int | None = setting(
+        100, "",
+        "time slides per scan: background live time / data's (0: none, far from the sign-inverted data "
+        "alone; null: as many as max_far needs, see slides_for)")
+    min_slide_s: float = setting(2.0, "s", "every detector is shifted at least this far")
+    slide_groups: int = setting(
+        4, "",
+        "detectors slid alike in this many random groups (0: each its own offset, about 4x the cost at f090)")
+    slide_gate: float = setting(
+        6.0, "Z",
+        "grouped slides: the data's maxima from this Z (real sources) are gated out of what is slid")
+    row_step: float = setting(0.8, "beam sigma", "beam sigmas between rows of positions")
+    background_floor: float = setting(3.0, "Z", "background maxima counted from this Z")
+    slide_floor: float = setting(
+        4.5, "Z",
+        "slides' maxima counted from this Z (below it, far rests on the sign-inverted data, which resolves "
+        "it)")
+    peak_window: float = setting(2.0, "beam-crossing times", "searched around a candidate")
+    max_single_share: float = setting(
+        0.5, "",
+        "background maxima one detector makes more than this share of are left out")
+    max_far: float | None = setting(
+        None, "1 / h",
+        "candidates with a false-alarm rate (per wafer-band-hour) above this are not detected; null: far is "
+        "reported, not cut")
+    seed: int = setting(0, "", "seed of the time slides' random offsets and groups")
+    tail_from: float | None = setting(3.5, "Z", "inverted data's maxima modelled from this Z; null: off")
+    sidelobe_window: float = setting(
+        1.0, "s",
+        "sign-inverted maxima this close to a data maximum and max_opposite_ratio times higher are "
+        "its filter sidelobe, left out of the background")
+    max_opposite_ratio: float = setting(
+        2.0, "",
+        "sign-inverted maxima within sidelobe_window of a data maximum and this many times higher are its "
+        "filter sidelobe, left out of the background")
 
     def __post_init__(self):
         self.slide_groups = int(self.slide_groups)

@@ -49,7 +49,7 @@ def test_each_setting_carries_its_unit_and_meaning_in_the_code():
     """Units and meanings live in the config dataclasses' field metadata (``setting``), not in
     comments: every key has a meaning, a key named for its unit carries that unit, and the
     time, angle and rate settings say theirs."""
-    keys = {(k.step, k.name): k for step in step_docs.STEP_CONFIGS
+    keys = {(k.step, k.name): k for step in step_docs.step_configs()
             for k in step_docs.config_keys(step)}
     assert all(k.meaning for k in keys.values())
     for (step, name), key in keys.items():

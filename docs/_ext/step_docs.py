@@ -3,8 +3,8 @@
 Directives
 ----------
 ``.. step-config:: transient_find``
-    One table per config dataclass of the step (the step's entry of
-    ``so_transients.preprocess.step_settings.STEP_CONFIGS``): every key (YAML name), its
+    One table per config dataclass of the step (its process class's ``spec.configs``,
+    :class:`so_transients.preprocess.step_fields.StepSpec`): every key (YAML name), its
     default, unit and meaning, from ``dataclasses.fields`` and each field's metadata
     (:func:`so_transients.common.step_config.setting`). Each row carries the HTML id
     ``config-<step>-<key>`` (underscores as hyphens), which :func:`missing_from_docs` looks for.
@@ -33,8 +33,7 @@ from pathlib import Path
 from docutils import nodes
 from docutils.parsers.rst import directives
 
-from so_transients.preprocess import step_settings
-from so_transients.preprocess.step_settings import STEP_CONFIGS
+from so_transients.preprocess.step_settings import step_configs
 
 STEP_PREFIX = "transient_"
 
@@ -63,13 +62,14 @@ def registered_steps() -> dict:
 
 
 def config_classes(step) -> list:
-    """The config dataclasses of ``step``, in the order their keys are documented:
-    ``so_transients.preprocess.step_settings.STEP_CONFIGS[step]``. A :class:`LookupError`
-    names a step missing there."""
-    if step not in STEP_CONFIGS:
-        raise LookupError(f"step {step!r} has no entry in so_transients.preprocess.step_settings."
-                          f"STEP_CONFIGS: add its config dataclasses there")
-    return list(STEP_CONFIGS[step])
+    """The config dataclasses of ``step``, in the order their keys are documented: its
+    process class's ``spec.configs``. A :class:`LookupError` names a step that declares
+    none."""
+    configs = step_configs()
+    if step not in configs:
+        raise LookupError(f"step {step!r} declares no config dataclasses: give its process "
+                          f"class a spec = StepSpec(configs=...)")
+    return list(configs[step])
 
 
 def example_block(process_cls) -> dict:
@@ -236,7 +236,7 @@ class StepConfig(SphinxDirective):
             container += _table(("key", "default", "unit", "meaning"), rows, (22, 16, 10, 52),
                                 ids=[row_id(step, k.name) for k in mine],
                                 title=f"{owner.rsplit('.', 1)[-1]} ({owner.rsplit('.', 1)[0]})")
-        for source in (step_settings, *config_classes(step)):
+        for source in (registered_steps()[step], *config_classes(step)):
             self.env.note_dependency(inspect.getsourcefile(source))
         return [container]
 

@@ -31,7 +31,7 @@ from so_transients.common import candidates, pointing, scan_geometry
 from so_transients.preprocess import slot_storage
 from so_transients.common.bands import fwhm_to_sigma, sigma_fwhm_by_band
 from so_transients.common.candidates import CAND_AXIS, HIT_AXIS
-from so_transients.coherent.config import CoherentConfig, find_settings, stacking_of
+from so_transients.coherent.config import FIND_CONFIGS, CoherentConfig, find_settings, stacking_of
 from so_transients.coherent.find import coherent_group_candidates
 from so_transients.detect.cuts import CutsConfig, cut_group_candidates
 from so_transients.detect.find import SCAN_FIELD, find_group_candidates, group_scans
@@ -50,7 +50,9 @@ from so_transients.detect.matched_filter import (
 )
 from so_transients.common.step_config import ConfigError, from_yaml
 from so_transients.sources.catalog import read_catalogue
-from so_transients.preprocess.step_fields import GroupName, require
+from so_transients.preprocess.step_fields import (
+    POINTING, POINTING_OPTIONAL, GroupName, StepSpec, require
+)
 from so_transients.score.model import load_model
 
 log = logging.getLogger(__name__)
@@ -171,6 +173,8 @@ class TransientJumps(_Preprocess):
     """
 
     name = "transient_jumps"
+    spec = StepSpec(configs=(JumpConfig,),
+                    requires=("signal", "timestamps"))
 
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
@@ -225,6 +229,8 @@ class TransientPcaMask(_Preprocess):
     """
 
     name = "transient_pca_mask"
+    spec = StepSpec(configs=(ExcursionConfig,),
+                    requires=("timestamps",))
 
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
@@ -299,6 +305,9 @@ class TransientFilter(_Preprocess):
     """
 
     name = "transient_filter"
+    spec = StepSpec(configs=(FilterConfig,),
+                    requires=("signal", "timestamps", "boresight.az", "boresight.el", "det_info"),
+                    optional=("obs_info.obs_id", "flags"))
 
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
@@ -465,6 +474,10 @@ class TransientFind(_Preprocess):
     """
 
     name = "transient_find"
+    spec = StepSpec(configs=FIND_CONFIGS,
+                    requires=("transient_snr", "transient_filter.bandpass",
+                              "transient_filter.beam_sigma") + POINTING,
+                    optional=("det_info.wafer_slot",) + POINTING_OPTIONAL)
 
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
@@ -562,6 +575,10 @@ class TransientCuts(_Preprocess):
     """
 
     name = "transient_cuts"
+    spec = StepSpec(configs=(CutsConfig,),
+                    requires=("transient_candidates", "transient_hits", "transient_snr",
+                              "focal_plane.gamma", "transient_filter.beam_sigma") + POINTING,
+                    optional=POINTING_OPTIONAL)
 
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
@@ -667,6 +684,12 @@ class TransientSignificance(_Preprocess):
     """
 
     name = "transient_significance"
+    spec = StepSpec(configs=(SignificanceConfig,),
+                    requires=("transient_candidates", "transient_snr", "transient_scan",
+                              "transient_filter.sigma_amp", "transient_filter.dead",
+                              "transient_filter.beam_sigma",
+                              "transient_filter.bandpass") + POINTING,
+                    optional=POINTING_OPTIONAL)
 
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
@@ -805,6 +828,12 @@ class TransientFit(_Preprocess):
     """
 
     name = "transient_fit"
+    spec = StepSpec(configs=(FitConfig,),
+                    requires=("transient_candidates", "transient_snr", "transient_filter.bandpass",
+                              "transient_filter.sigma_amp", "transient_filter.dead",
+                              "transient_filter.beam_sigma", "transient_filter.fit_inflation",
+                              "transient_filter.lag", "transient_filter.response") + POINTING,
+                    optional=("transient_hits",) + POINTING_OPTIONAL)
 
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)

@@ -33,7 +33,7 @@ from sotodlib.preprocess.processes import FourierFilter, GlitchDetection, _Prepr
 from so_transients.detect.pca import PcaConfig, pca_filter
 from so_transients.common.step_config import ChunkConfig, ConfigError, from_yaml
 from so_transients.preprocess.processes import _register
-from so_transients.preprocess.step_fields import GroupName, has_field, require
+from so_transients.preprocess.step_fields import GroupName, StepSpec, has_field, require
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +112,8 @@ class TransientPcaFilter(_Preprocess):
     """
 
     name = "transient_pca_filter"
+    spec = StepSpec(configs=(PcaConfig,),
+                    requires=())
 
     def __init__(self, step_cfgs):
         self.signal = step_cfgs.get("signal", "signal")
@@ -174,6 +176,8 @@ class TransientFourierFilter(FourierFilter):
     """
 
     name = "transient_fourier_filter"
+    spec = StepSpec(configs=(ChunkConfig,),
+                    requires=("timestamps",))
 
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)
@@ -278,6 +282,8 @@ class TransientGlitches(GlitchDetection):
     """
 
     name = "transient_glitches"
+    spec = StepSpec(configs=(ChunkConfig,),
+                    requires=("timestamps",))
 
     def __init__(self, step_cfgs):
         super().__init__(step_cfgs)

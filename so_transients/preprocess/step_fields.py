@@ -1,45 +1,41 @@
-"""What each transient step reads of an AxisManager, declared once.
+"""What each transient step declares about itself, in one place: its process class's ``spec``.
 
-``REQUIRED[step]``: fields the step cannot run without (it refuses the group, naming the
-missing ones); ``OPTIONAL[step]``: fields it uses when present. Dotted paths name fields of
-sub-AxisManagers. The steps check their input with :func:`require`, and the injection
-campaign keeps exactly these fields (:func:`kept_fields`) when it cuts windows out of a group.
-Standard SO fields only, besides what an earlier transient step wrote.
+A :class:`StepSpec` names the step's config dataclasses (the keys of its YAML block), the
+AxisManager fields it cannot run without (``requires``: it refuses the group, naming the
+missing ones) and those it uses when present (``optional``). Dotted paths name fields of
+sub-AxisManagers. :func:`step_specs` reads them from sotodlib's registry, so that a new step is
+its module and its registration. The steps check their input with :func:`require`, and the
+injection campaign keeps exactly these fields (:func:`kept_fields`) when it cuts windows out
+of a group. Standard SO fields only, besides what an earlier transient step wrote.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 from so_transients.common.pointing import BORE_Q
 
-_POINTING = ("timestamps", "boresight.az", "boresight.el", "focal_plane.xi", "focal_plane.eta")
-_POINTING_OPTIONAL = ("boresight.roll", BORE_Q, "obs_info.obs_id")
+#: the pointing every search step reads, and what it uses of it when present
+POINTING = ("timestamps", "boresight.az", "boresight.el", "focal_plane.xi", "focal_plane.eta")
+POINTING_OPTIONAL = ("boresight.roll", BORE_Q, "obs_info.obs_id")
 
-REQUIRED = {
-    "transient_jumps": ("signal", "timestamps"),
-    "transient_pca_mask": ("timestamps",),
-    "transient_pca_filter": (),
-    "transient_fourier_filter": ("timestamps",),
-    "transient_glitches": ("timestamps",),
-    "transient_filter": ("signal", "timestamps", "boresight.az", "boresight.el", "det_info"),
-    "transient_find": ("transient_snr", "transient_filter.bandpass",
-                       "transient_filter.beam_sigma") + _POINTING,
-    "transient_cuts": ("transient_candidates", "transient_hits", "transient_snr",
-                       "focal_plane.gamma", "transient_filter.beam_sigma") + _POINTING,
-    "transient_significance": ("transient_candidates", "transient_snr", "transient_scan",
-                               "transient_filter.sigma_amp", "transient_filter.dead",
-                               "transient_filter.beam_sigma",
-                               "transient_filter.bandpass") + _POINTING,
-    "transient_fit": ("transient_candidates", "transient_snr", "transient_filter.bandpass",
-                      "transient_filter.sigma_amp", "transient_filter.dead",
-                      "transient_filter.beam_sigma", "transient_filter.fit_inflation",
-                      "transient_filter.lag", "transient_filter.response") + _POINTING,
-}
-OPTIONAL = {
-    "transient_filter": ("obs_info.obs_id", "flags"),
-    "transient_find": ("det_info.wafer_slot",) + _POINTING_OPTIONAL,
-    "transient_cuts": _POINTING_OPTIONAL,
-    "transient_significance": _POINTING_OPTIONAL,
-    "transient_fit": ("transient_hits",) + _POINTING_OPTIONAL,
-}
+
+@dataclass(frozen=True)
+class StepSpec:
+    """A step's config dataclasses and the AxisManager fields it reads (see the module)."""
+
+    configs: tuple = ()
+    requires: tuple = ()
+    optional: tuple = ()
+
+
+def step_specs() -> dict:
+    """``{name: StepSpec}`` of every registered step that declares one, in registration
+    order (importing :mod:`so_transients.preprocess` registers them)."""
+    import so_transients.preprocess  # noqa: F401
+    from sotodlib.preprocess import Pipeline
+
+    return {name: cls.spec for name, cls in Pipeline.PIPELINE.items()
+            if isinstance(getattr(cls, "spec", None), StepSpec)}
 
 
 class GroupName:
@@ -71,8 +67,8 @@ def has_field(aman, path):
 
 def require(aman, step, extra=()):
     """Raise a ValueError naming the step, the observation and group, and every missing
-    field of ``REQUIRED[step]`` (and ``extra``)."""
-    missing = [p for p in REQUIRED[step] + tuple(extra) if not has_field(aman, p)]
+    field the step requires (and ``extra``)."""
+    missing = [p for p in step_specs()[step].requires + tuple(extra) if not has_field(aman, p)]
     if missing:
         raise ValueError(f"{step}: {GroupName(aman)} lacks {', '.join(missing)}")
 
@@ -81,9 +77,9 @@ def kept_fields(steps, sub_of=("flags", "transient_filter", "obs_info", "det_inf
                                "boresight", "focal_plane")) -> dict:
     """{sub-AxisManager: fields of it that ``steps`` read} for the sub-AxisManagers
     ``sub_of``; a bare name (e.g. ``det_info``) keeps all of that sub-AxisManager."""
-    out = {}
+    out, specs = {}, step_specs()
     for step in steps:
-        for path in REQUIRED[step] + OPTIONAL[step]:
+        for path in specs[step].requires + specs[step].optional:
             head, _, rest = path.partition(".")
             if head in sub_of:
                 out.setdefault(head, set()).add(rest or "*")

@@ -8,7 +8,7 @@ from sotodlib.preprocess import Pipeline
 
 import so_transients  # noqa: F401  registers the steps
 from so_transients.common.step_config import ConfigError
-from so_transients.preprocess.step_settings import STEP_CONFIGS
+from so_transients.preprocess.step_settings import step_configs
 
 #: keys for which 0 is a documented setting: "off" or "none"
 ZERO_ALLOWED = {"chi2_bins", "n_slides", "slide_groups", "seed", "edge_buffer", "mask_buffer",
@@ -16,7 +16,7 @@ ZERO_ALLOWED = {"chi2_bins", "n_slides", "slide_groups", "seed", "edge_buffer", 
 
 
 def numeric_keys():
-    for step, classes in STEP_CONFIGS.items():
+    for step, classes in step_configs().items():
         for cls in classes:
             for f in dataclasses.fields(cls):
                 if str(f.type).replace(" ", "").replace("|None", "") in ("float", "int"):

@@ -2,8 +2,8 @@
 light curves ingested (SQLite by default, PostgreSQL at a site), association against what is
 already stored, and the queries (cone search, time range, a source's light curve).
 
-- :mod:`.schema`: the tables (columns derived from the events and candidate schemas), the
-  schema version and its migrations
+- :mod:`.schema`: the tables (columns derived from the events and candidate schemas) and
+  their migrations (alembic revisions in ``migrations/``)
 - :mod:`.engine`: opening a database by URL and the locked write transaction
 - :mod:`.runs`: one ``so-transients events`` folder split by observation
 - :mod:`.ingest`: idempotent ingest, one transaction per observation, association with the

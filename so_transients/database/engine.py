@@ -111,15 +111,19 @@ def migrate(engine: sa.Engine) -> list:
 
 
 def open_database(path_or_url, create=True) -> sa.Engine:
-    """An engine on an events database, migrated to the current schema (``create``: make the
-    tables when there are none), else checked to be current."""
+    """An engine on an events database checked to be current (:func:`schema.check_current`:
+    an older one is refused, naming ``so-transients db migrate``); ``create``: an empty
+    database gets the tables."""
     engine = open_engine(path_or_url)
+    url = engine.url
+    if url.get_backend_name() == "sqlite" and not Path(url.database or "").is_file() \
+            and not create:
+        raise FileNotFoundError(f"{url.database}: no such database file")
     if create:
-        migrate(engine)
-    else:
-        url = engine.url
-        if url.get_backend_name() == "sqlite" and not Path(url.database or "").is_file():
-            raise FileNotFoundError(f"{url.database}: no such database file")
-        with read_connection(engine):
-            pass
+        with engine.connect() as conn:
+            empty = schema.stored_revision(conn) is None
+        if empty:
+            migrate(engine)
+    with read_connection(engine):
+        pass
     return engine

@@ -290,6 +290,7 @@ def ingest_run(engine: sa.Engine, run: Run, cfg: AssociationConfig | None = None
     results = []
     for part in split(run):
         with write_transaction(engine) as conn:
+            schema.check_current(conn)      # refused, naming `db migrate`, when older
             result = ingest_observation(conn, part, run, cfg)
             if on_written is not None:
                 on_written(part.obs_id, conn)

@@ -1,9 +1,9 @@
 """The database's tables, derived from the column declarations of the tables it stores, and
-its schema version with the migrations that bring an older database up to it.
+the migrations (alembic's) that bring an older database up to them.
 
 Tables (SQLAlchemy Core, one :data:`METADATA`):
 
-* ``schema_version``: one row per migration applied (version, description, UTC);
+* ``alembic_version``: the schema's revision (alembic's own table);
 * ``observations``: one row per observation ingested (``obs_id`` unique), with where its rows
   came from (run folder, preprocess config and its digest, package version, time);
 * ``sources``: the persistent sources, ``id`` kept across observations (and a UUID for
@@ -17,18 +17,25 @@ The last five take their columns from the declarations of the files they store:
 (with the cutout itself in JSON, as lightcurvedb's ``Cutout`` holds it) and the
 candidate schema (:data:`so_transients.common.candidates.SCHEMA`), each with its kind, unit and
 meaning. The run's own numbering is kept as ``run_event_id`` and ``run_source_id``
-(:data:`RENAMED`). A column added to one of those declarations needs no code here: opening the
-database for writing adds it (:func:`add_missing_columns`), and until then, or for a column that
-no declaration names, the value is kept in the row's JSON ``extra`` column.
+(:data:`RENAMED`). A column added to one of those declarations needs no code here:
+``so-transients db migrate`` adds it (:func:`add_missing_columns`); until then the database is
+refused, with a message naming that command, and a column that no declaration names is kept in
+the row's JSON ``extra`` column.
 
-A structural change is a new function appended to :data:`MIGRATIONS`; :func:`migrate` applies
-those the database has not seen, in one locked transaction, and records each.
+A structural change is a new alembic revision in ``migrations/versions/``; :func:`migrate` runs
+those the database has not seen (``alembic upgrade head``) in one locked transaction. A database
+made by the package's own runner before alembic (a ``schema_version`` table) is stamped with its
+revision first.
 """
 from __future__ import annotations
 
-from datetime import datetime, timezone
+from pathlib import Path
 
 import sqlalchemy as sa
+from alembic import command
+from alembic.config import Config
+from alembic.runtime.migration import MigrationContext
+from alembic.script import ScriptDirectory
 from sqlalchemy.dialects.postgresql import JSONB
 
 from so_transients.common import candidates
@@ -73,13 +80,6 @@ def _owned():
             sa.Column("source_id", sa.Integer, sa.ForeignKey("sources.id"), nullable=False,
                       index=True, comment="persistent source")]
 
-
-SCHEMA_VERSION = sa.Table(
-    "schema_version", METADATA,
-    sa.Column("version", sa.Integer, primary_key=True, autoincrement=False),
-    sa.Column("description", sa.Text, nullable=False),
-    sa.Column("applied_utc", sa.Text, nullable=False),
-)
 
 OBSERVATIONS = sa.Table(
     "observations", METADATA,
@@ -166,73 +166,65 @@ OWNED = (CUTOUTS, LIGHTCURVE_FITS, LIGHTCURVE_POINTS, DETECTIONS, EVENTS)
 
 # ----------------------------------------------------------------------------- migrations
 
-def _create_tables(conn):
-    """Version 1: every table and index (a new database gets the later versions' too)."""
-    METADATA.create_all(conn)
+MIGRATIONS = Path(__file__).resolve().parent / "migrations"
 
-
-def _catalogue_ids_as_text(conn):
-    """Version 3: the cross-matched source's id as text ('' for none, was -1). SQLite keeps
-    any value in any column: its rows are rewritten only."""
-    stored = {c["name"]: c["type"] for c in sa.inspect(conn).get_columns("events")}
-    if "cat_source_id" not in stored:
-        return
-    if conn.dialect.name == "postgresql":
-        if isinstance(stored["cat_source_id"], sa.String):
-            return            # made by this version's create_all: text already
-        conn.exec_driver_sql("ALTER TABLE events ALTER COLUMN cat_source_id TYPE text USING "
-                             "CASE WHEN cat_source_id = -1 THEN '' "
-                             "ELSE cat_source_id::text END")
-    else:
-        conn.exec_driver_sql("UPDATE events SET cat_source_id = '' WHERE cat_source_id = -1")
-
-
-def _create_cutouts(conn):
-    """Version 2: the events' sky cutouts."""
-    CUTOUTS.create(conn, checkfirst=True)
-
-
-#: ``(version, description, upgrade(connection))`` in order; append, never edit.
-MIGRATIONS = (
-    (1, "observations, sources, events, detections, light-curve points and fits",
-     _create_tables),
-    (2, "cutouts: each event's sky cutout per band, made from the TOD", _create_cutouts),
-    (3, "events.cat_source_id as text: socat's ids are UUIDs since socat 0.1",
-     _catalogue_ids_as_text),
-)
-VERSION = MIGRATIONS[-1][0]
+#: the table the package's own migration runner kept before alembic (versions 1-3)
+LEGACY_VERSION_TABLE = "schema_version"
 
 
 class SchemaError(RuntimeError):
     """The database is not one this version can use as it is."""
 
 
-def stored_version(conn) -> int:
-    """The database's schema version (0: no schema yet)."""
-    if not sa.inspect(conn).has_table(SCHEMA_VERSION.name):
-        return 0
-    return conn.execute(sa.select(sa.func.max(SCHEMA_VERSION.c.version))).scalar() or 0
+def alembic_config(conn=None) -> Config:
+    """alembic's config for the revisions in ``migrations/``, running on ``conn``."""
+    cfg = Config()
+    cfg.set_main_option("script_location", str(MIGRATIONS))
+    cfg.attributes["connection"] = conn
+    return cfg
+
+
+#: the newest revision (what this version of the package writes)
+HEAD = ScriptDirectory.from_config(alembic_config()).get_current_head()
+
+
+def stored_revision(conn) -> str | None:
+    """The database's revision (``'0003'``...; None: no schema yet). A database the
+    package's own runner made reads as the revision of its last version."""
+    revision = MigrationContext.configure(conn).get_current_revision()
+    if revision is None and sa.inspect(conn).has_table(LEGACY_VERSION_TABLE):
+        version = conn.exec_driver_sql(f"SELECT max(version) FROM {LEGACY_VERSION_TABLE}")
+        return f"{version.scalar() or 0:04d}"
+    return revision
+
+
+def _known(revision) -> bool:
+    script = ScriptDirectory.from_config(alembic_config())
+    return revision in {r.revision for r in script.walk_revisions()}
+
+
+def _refuse_unknown(conn, revision):
+    if revision is not None and not _known(revision):
+        raise SchemaError(f"{conn.engine.url!r}: schema revision {revision} is newer than this "
+                          f"so_transients knows ({HEAD}): upgrade so_transients")
 
 
 def migrate(conn) -> list:
     """Bring the database of ``conn`` (inside a write transaction, see
-    :func:`so_transients.database.engine.write_transaction`) to :data:`VERSION`, then add the
+    :func:`so_transients.database.engine.write_transaction`) to :data:`HEAD`, then add the
     declared columns it lacks; returns what was done (one line each). Refuses a database of a
-    newer version."""
-    done = []
-    version = stored_version(conn)
-    if version > VERSION:
-        raise SchemaError(f"{conn.engine.url!r}: schema version {version} is newer than this "
-                          f"so_transients knows ({VERSION}): upgrade so_transients")
-    for number, description, upgrade in MIGRATIONS:
-        if number > version:
-            upgrade(conn)
-            conn.execute(SCHEMA_VERSION.insert().values(
-                version=number, description=description,
-                applied_utc=datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S")))
-            done.append(f"schema version {number}: {description}")
-    done += add_missing_columns(conn)
-    return done
+    revision this version does not know (a newer one)."""
+    before = stored_revision(conn)
+    _refuse_unknown(conn, before)
+    cfg = alembic_config(conn)
+    if before is not None and MigrationContext.configure(conn).get_current_revision() is None:
+        command.stamp(cfg, before)              # made by the package's own runner
+    command.upgrade(cfg, "head")
+    script = ScriptDirectory.from_config(cfg)
+    done = [f"schema revision {r.revision}: {r.doc}"
+            for r in reversed(list(script.walk_revisions("base", "head")))
+            if before is None or int(r.revision) > int(before)]
+    return done + add_missing_columns(conn)
 
 
 def missing_columns(conn) -> list:
@@ -259,12 +251,13 @@ def add_missing_columns(conn) -> list:
 
 
 def check_current(conn):
-    """Raise :class:`SchemaError` unless the database is at :data:`VERSION` with every
-    declared column (what the queries need)."""
-    version = stored_version(conn)
-    if version == 0:
+    """Raise :class:`SchemaError` unless the database is at :data:`HEAD` with every declared
+    column (what ingest and the queries need)."""
+    revision = stored_revision(conn)
+    if revision is None:
         raise SchemaError(f"{conn.engine.url!r} holds no so_transients events database "
-                          "(no schema_version table): ingest a run first")
-    if version != VERSION or missing_columns(conn):
-        raise SchemaError(f"{conn.engine.url!r}: schema version {version} (this so_transients: "
-                          f"{VERSION}) or columns missing: run `so-transients db migrate`")
+                          "(no alembic_version table): ingest a run first")
+    _refuse_unknown(conn, revision)
+    if revision != HEAD or missing_columns(conn):
+        raise SchemaError(f"{conn.engine.url!r}: schema revision {revision} (this so_transients: "
+                          f"{HEAD}) or columns missing: run `so-transients db migrate`")

@@ -18,6 +18,10 @@ import sqlalchemy as sa
 from astropy.table import Table
 from astropy.time import Time
 
+from alembic import command
+from alembic.autogenerate import compare_metadata
+from alembic.runtime.migration import MigrationContext
+
 from so_transients.database import schema
 from so_transients.database.command import get_parser, main
 from so_transients.database.engine import open_database, open_engine, write_transaction
@@ -372,41 +376,83 @@ def test_undeclared_columns_are_kept_and_declared_ones_are_added(new_db, tmp_pat
     assert len(find_events(open_engine(url))) == 2
     with write_transaction(engine) as conn:
         assert schema.migrate(conn) == []
-        assert schema.stored_version(conn) == schema.VERSION
-        conn.execute(schema.SCHEMA_VERSION.insert().values(version=schema.VERSION + 1,
-                                                           description="future",
-                                                           applied_utc="2030-01-01T00:00:00"))
+        assert schema.stored_revision(conn) == schema.HEAD
+        conn.exec_driver_sql("UPDATE alembic_version SET version_num = '9999'")
     with pytest.raises(schema.SchemaError, match="newer"):
         open_database(url)
+    with pytest.raises(schema.SchemaError, match="newer"):
+        db("migrate", "--db", url)
 
 
-def test_a_database_of_schema_version_1_is_brought_to_the_current_one(new_db):
-    """A database as version 1 made it (no cutouts table; catalogue ids as integers, -1 for
-    none) is brought to the current version when opened for writing, its rows kept: the
-    cutouts table made, the ids text ('' for none)."""
-    url = new_db()
-    engine = open_database(url)
-    run = night("v", T0, 1, seed=71)
-    run.events["cat_source_id"] = ["", "17"]
-    ingest_run(engine, run)
+def revision_1_database(url):
+    """A database as revision 0001 made it (no cutouts table; catalogue ids as integers, -1
+    for none), holding one observation, one source and two events (ids -1 and 17)."""
+    engine = open_engine(url)
     with write_transaction(engine) as conn:
-        conn.execute(schema.CUTOUTS.delete())
-        schema.CUTOUTS.drop(conn)
-        if conn.dialect.name == "postgresql":
-            conn.exec_driver_sql("ALTER TABLE events ALTER COLUMN cat_source_id TYPE bigint "
-                                 "USING COALESCE(NULLIF(cat_source_id, ''), '-1')::bigint")
-        else:
-            conn.exec_driver_sql("UPDATE events SET cat_source_id = -1 "
-                                 "WHERE cat_source_id = ''")
-        conn.execute(schema.SCHEMA_VERSION.delete().where(schema.SCHEMA_VERSION.c.version > 1))
-        assert schema.stored_version(conn) == 1
+        command.upgrade(schema.alembic_config(conn), "0001")
+        obs = conn.execute(schema.OBSERVATIONS.insert().values(
+            obs_id="o1", ingested_utc="2026-12-01T00:00:00", n_events=2, n_detections=0,
+            n_lightcurve_points=0)).inserted_primary_key[0]
+        src = conn.execute(schema.SOURCES.insert().values(
+            uuid=str(uuid.uuid4()), name="SOTR J1", ra=1.0, dec=2.0, t_first=T0, t_last=T0,
+            n_events=2)).inserted_primary_key[0]
+        for k, cat_id in enumerate((-1, 17)):
+            conn.exec_driver_sql("INSERT INTO events (observation_id, source_id, run_event_id, "
+                                 f"cat_source_id) VALUES ({obs}, {src}, {k}, {cat_id})")
+    return engine
+
+
+def test_a_database_of_revision_1_is_refused_until_migrated_and_then_current(new_db):
+    """A database as the first schema made it is refused by ingest and the queries, naming
+    ``so-transients db migrate``; migrating keeps its rows, makes the cutouts table and the
+    catalogue ids text ('' for none), and leaves the tables exactly as declared."""
+    url = new_db()
+    revision_1_database(url)
+    with pytest.raises(schema.SchemaError, match="schema revision 0001.*db migrate"):
+        open_database(url)
+    with pytest.raises(schema.SchemaError, match="db migrate"):
+        ingest_run(open_engine(url), night("v", T0, 1, seed=71))
+    assert db("migrate", "--db", url) == 0
     engine = open_database(url)
     with engine.connect() as conn:
-        assert schema.stored_version(conn) == schema.VERSION >= 3
+        assert schema.stored_revision(conn) == schema.HEAD
         assert sa.inspect(conn).has_table("cutouts")
         ids = conn.exec_driver_sql("SELECT cat_source_id FROM events ORDER BY run_event_id")
         assert [str(v) for (v,) in ids] == ["", "17"]
+        assert compare_metadata(MigrationContext.configure(conn), schema.METADATA) == []
     assert counts(engine)["events"] == 2 and counts(engine)["cutouts"] == 0
+
+
+def test_the_revisions_build_the_declared_tables(new_db):
+    """A new database, made by alembic's revisions (and the declared columns added since the
+    last one), is what the package declares, as alembic's own comparison sees it."""
+    url = new_db()
+    engine = open_database(url)
+    with engine.connect() as conn:
+        assert MigrationContext.configure(conn).get_current_revision() == schema.HEAD
+        assert compare_metadata(MigrationContext.configure(conn), schema.METADATA) == []
+
+
+def test_a_database_of_the_packages_own_runner_is_taken_over_by_alembic(new_db):
+    """A database the package's migration runner made before alembic (its ``schema_version``
+    table at version 3) is stamped at revision 0003 and brought to the head; the old table
+    goes."""
+    url = new_db()
+    engine = open_engine(url)
+    with write_transaction(engine) as conn:
+        command.upgrade(schema.alembic_config(conn), "0003")
+        conn.exec_driver_sql("DROP TABLE alembic_version")
+        conn.exec_driver_sql("CREATE TABLE schema_version (version INTEGER PRIMARY KEY, "
+                             "description TEXT NOT NULL, applied_utc TEXT NOT NULL)")
+        for v in (1, 2, 3):
+            conn.exec_driver_sql(f"INSERT INTO schema_version VALUES ({v}, 'v{v}', '2026')")
+        assert schema.stored_revision(conn) == "0003"
+    with pytest.raises(schema.SchemaError, match="db migrate"):
+        open_database(url)
+    assert db("migrate", "--db", url) == 0
+    with open_engine(url).connect() as conn:
+        assert schema.stored_revision(conn) == schema.HEAD
+        assert not sa.inspect(conn).has_table("schema_version")
 
 
 def test_a_run_whose_detections_do_not_give_its_events_is_refused(new_db, tmp_path):

@@ -1,0 +1,246 @@
+"""Version 1: observations, sources, events, detections, light-curve points and fits.
+
+The tables as the first schema made them (frozen: later changes are later revisions).
+
+Revision ID: 0001
+Revises:
+Create Date: 2026-12-02
+"""
+import sqlalchemy as sa
+from alembic import op
+from sqlalchemy import Text
+from sqlalchemy.dialects import postgresql
+
+revision = "0001"
+down_revision = None
+branch_labels = None
+depends_on = None
+
+
+def upgrade():
+    op.create_table('observations',
+    sa.Column('id', sa.Integer(), autoincrement=True, nullable=False),
+    sa.Column('obs_id', sa.Text(), nullable=False),
+    sa.Column('run_folder', sa.Text(), nullable=True, comment='events folder it was ingested from'),
+    sa.Column('preprocess_config', sa.Text(), nullable=True),
+    sa.Column('preprocess_config_sha256', sa.Text(), nullable=True),
+    sa.Column('so_transients_version', sa.Text(), nullable=True, comment='version that wrote the run'),
+    sa.Column('ingested_utc', sa.Text(), nullable=False),
+    sa.Column('n_events', sa.Integer(), nullable=False),
+    sa.Column('n_detections', sa.Integer(), nullable=False),
+    sa.Column('n_lightcurve_points', sa.Integer(), nullable=False),
+    sa.PrimaryKeyConstraint('id'),
+    sa.UniqueConstraint('obs_id')
+    )
+    op.create_table('sources',
+    sa.Column('id', sa.Integer(), autoincrement=True, nullable=False),
+    sa.Column('uuid', sa.String(length=36), nullable=False, comment='lightcurvedb source_id'),
+    sa.Column('name', sa.Text(), nullable=False, comment='SOTR J... of its position'),
+    sa.Column('ra', sa.Double(), nullable=False, comment='weighted RA of its events [deg]'),
+    sa.Column('dec', sa.Double(), nullable=False, comment='weighted Dec of its events [deg]'),
+    sa.Column('pos_err', sa.Double(), nullable=True, comment='one-axis error of that position [arcsec]'),
+    sa.Column('t_first', sa.Double(), nullable=False, comment="first event's t_first [s]"),
+    sa.Column('t_last', sa.Double(), nullable=False, comment="last event's t_last [s]"),
+    sa.Column('n_events', sa.Integer(), nullable=False),
+    sa.PrimaryKeyConstraint('id'),
+    sa.UniqueConstraint('uuid')
+    )
+    op.create_index(op.f('ix_sources_dec'), 'sources', ['dec'], unique=False)
+    op.create_index(op.f('ix_sources_t_last'), 'sources', ['t_last'], unique=False)
+    op.create_table('detections',
+    sa.Column('id', sa.Integer(), autoincrement=True, nullable=False),
+    sa.Column('observation_id', sa.Integer(), nullable=False, comment='the observation it was ingested with'),
+    sa.Column('source_id', sa.Integer(), nullable=False, comment='persistent source'),
+    sa.Column('run_event_id', sa.BigInteger(), nullable=False, comment='its event in the run'),
+    sa.Column('obs_id', sa.Text(), nullable=True, comment='observation'),
+    sa.Column('cand_id', sa.BigInteger(), nullable=True, comment='candidate number within its group (wafer x band)'),
+    sa.Column('bandpass', sa.Text(), nullable=True, comment='band of the detectors (det_info bandpass)'),
+    sa.Column('wafer_slot', sa.Text(), nullable=True, comment='wafer of the detector with the highest S/N'),
+    sa.Column('scan', sa.BigInteger(), nullable=True, comment='scan (sweep between turnarounds) within the observation'),
+    sa.Column('direction', sa.BigInteger(), nullable=True, comment='scan direction in azimuth: +1 or -1'),
+    sa.Column('cluster_ra', sa.Double(), nullable=True, comment='mean RA of the clustered S/N >= threshold samples [rad]'),
+    sa.Column('cluster_dec', sa.Double(), nullable=True, comment='mean Dec of the clustered samples [rad]'),
+    sa.Column('t_median', sa.Double(), nullable=True, comment='median ctime of the clustered samples [s]'),
+    sa.Column('t_start', sa.Double(), nullable=True, comment='first ctime of the clustered samples [s]'),
+    sa.Column('t_stop', sa.Double(), nullable=True, comment='last ctime of the clustered samples [s]'),
+    sa.Column('t_peak', sa.Double(), nullable=True, comment='ctime of the clustered sample with the highest S/N [s]'),
+    sa.Column('snr_max', sa.Double(), nullable=True, comment='highest matched-filter S/N of the cluster'),
+    sa.Column('n_samples', sa.BigInteger(), nullable=True, comment='samples in the cluster'),
+    sa.Column('n_dets', sa.BigInteger(), nullable=True, comment='distinct detectors in the cluster'),
+    sa.Column('map_z', sa.Double(), nullable=True, comment="coherent mode: Z of the map maximum, in units of the scan's measured spread (NaN in paper mode)"),
+    sa.Column('n_crossings', sa.BigInteger(), nullable=True, comment='crossings whose coherent Z map_z sums: more than 1 for a sweep stack (coherent mode), else 1'),
+    sa.Column('joint_z', sa.Double(), nullable=True, comment='joint_bands: the joint-band statistic J of the map maximum (both bands of the wafer at the best spectral index; NaN without)'),
+    sa.Column('spectral_index', sa.Double(), nullable=True, comment='joint_bands: the spectral index alpha (S proportional to nu^alpha) that maximises J'),
+    sa.Column('joint_id', sa.BigInteger(), nullable=True, comment="joint_bands: number shared by the two bands' candidates of one joint maximum (-1: none)"),
+    sa.Column('band_correlation', sa.Double(), nullable=True, comment="joint_bands: correlation of the two bands' maps in the candidate's scan (their shared residual atmosphere)"),
+    sa.Column('pass_n_dets', sa.Boolean(), nullable=True, comment='enough detectors (min_dets)'),
+    sa.Column('pass_aspect_ratio', sa.Boolean(), nullable=True, comment='detectors form a line along the scan'),
+    sa.Column('pass_time_order', sa.Boolean(), nullable=True, comment='hit times follow a source drifting across'),
+    sa.Column('pass_sidelobe', sa.Boolean(), nullable=True, comment='no much stronger signal of opposite sign nearby'),
+    sa.Column('pass_known_source', sa.Boolean(), nullable=True, comment="not at a known source's position"),
+    sa.Column('aspect_ratio', sa.Double(), nullable=True, comment='focal-plane extent along / across the scan'),
+    sa.Column('time_rms', sa.Double(), nullable=True, comment='robust rms of peak times about the drift model [s]'),
+    sa.Column('instant_rms', sa.Double(), nullable=True, comment='robust rms of peak times about one instant [s]'),
+    sa.Column('opposite_snr', sa.Double(), nullable=True, comment="most negative S/N of the candidate's detectors within sidelobe_window"),
+    sa.Column('pol_fraction', sa.Double(), nullable=True, comment='largest fraction of detectors sharing one polarization orientation'),
+    sa.Column('pol_flag', sa.Boolean(), nullable=True, comment='mostly one polarization orientation (not a cut)'),
+    sa.Column('cut_reason', sa.Text(), nullable=True, comment="first cut failed, '' if none"),
+    sa.Column('passed', sa.Boolean(), nullable=True, comment='passed every cut'),
+    sa.Column('coherent_snr', sa.Double(), nullable=True, comment='coherent statistic Z of the crossing at the candidate (optional step)'),
+    sa.Column('coherent_chi2', sa.Double(), nullable=True, comment="chi-squared of that maximum's detector groups (bins - 1 degrees of freedom for a source crossing; NaN for a stack)"),
+    sa.Column('coherent_consistent', sa.Boolean(), nullable=True, comment="passes transient_find's chi-squared test (far then ranks it among the background maxima that pass it)"),
+    sa.Column('far', sa.Double(), nullable=True, comment='false alarms per wafer-band-hour with Z at least this large: the higher of far_slides and far_inverted [1 / h]'),
+    sa.Column('far_slides', sa.Double(), nullable=True, comment="far from the time slides' maxima [1 / h]"),
+    sa.Column('far_inverted', sa.Double(), nullable=True, comment="far from the sign-inverted data's maxima (counted, or beyond tail_from its tail model where higher) [1 / h]"),
+    sa.Column('far_is_limit', sa.Boolean(), nullable=True, comment="far is an upper limit, not a count: no time slide reached this Z, so far is the slides' resolution (half a false alarm in their live time) and the sign-inverted data give no more"),
+    sa.Column('pass_far', sa.Boolean(), nullable=True, comment='far <= max_far (True without the step or max_far)'),
+    sa.Column('flux', sa.Double(), nullable=True, comment='fitted amplitude A0 of the beam model [mJy]'),
+    sa.Column('flux_err', sa.Double(), nullable=True, comment='error of flux (measured error scale applied) [mJy]'),
+    sa.Column('ra', sa.Double(), nullable=True, comment='position: the fitted one where the fit converged, else the cluster mean [rad]'),
+    sa.Column('dec', sa.Double(), nullable=True, comment='position (see ra) [rad]'),
+    sa.Column('ra_err', sa.Double(), nullable=True, comment='error of the fitted RA, along RA on the sky [rad]'),
+    sa.Column('dec_err', sa.Double(), nullable=True, comment='error of the fitted Dec [rad]'),
+    sa.Column('offset', sa.Double(), nullable=True, comment='fitted constant C of the beam model [mJy]'),
+    sa.Column('offset_err', sa.Double(), nullable=True, comment='error of offset [mJy]'),
+    sa.Column('snr_fit', sa.Double(), nullable=True, comment='flux / flux_err'),
+    sa.Column('snr_joint', sa.Double(), nullable=True, comment="joint_bands: both bands' fitted fluxes combined at spectral_index with their band_correlation, the S/N of the flux at the first band's frequency (NaN: not a joint pair, or a band's fit failed)"),
+    sa.Column('chi2_red', sa.Double(), nullable=True, comment='reduced chi^2 of the fit'),
+    sa.Column('n_fit_samples', sa.BigInteger(), nullable=True, comment='samples fitted'),
+    sa.Column('n_fit_dets', sa.BigInteger(), nullable=True, comment='detectors fitted'),
+    sa.Column('fit_ok', sa.Boolean(), nullable=True, comment='the fit converged with finite errors'),
+    sa.Column('error_scale', sa.Double(), nullable=True, comment="measured factor applied to the fit's errors"),
+    sa.Column('moving', sa.Boolean(), nullable=True, comment="its group's detections at this source move across scans (a planet, asteroid or satellite)"),
+    sa.Column('motion_rate', sa.Double(), nullable=True, comment='rate of that motion (NaN: the fit was not significant or stood alone) [arcmin / min]'),
+    sa.Column('pass_peak_ratio', sa.Boolean(), nullable=True, comment="snr_max <= max_peak_ratio x snr_fit (a glitch residue's one detector is far brighter than the fitted source could make it)"),
+    sa.Column('split_sigma', sa.Double(), nullable=True, comment='the beam fits of two halves of the detectors (dealt alternately across the scan) differ by this many errors in position or flux, floors included (NaN: not significant or not measured)'),
+    sa.Column('pass_split', sa.Boolean(), nullable=True, comment='split_sigma <= max_split_sigma: the data support the fitted position and flux (a fit pulled by a few detectors does not pass)'),
+    sa.Column('duplicate_of', sa.BigInteger(), nullable=True, comment='cand_id of the detection of the same crossing (scan and band, fitted within a beam FWHM) with the higher S/N that this significant fit repeats; -1: none'),
+    sa.Column('real_score', sa.Double(), nullable=True, comment='probability that the fitted candidate is a real source rather than an artefact, from the score_model (NaN: no model, or not fitted)'),
+    sa.Column('pass_score', sa.Boolean(), nullable=True, comment='real_score >= min_real_score (True without a cut)'),
+    sa.Column('detected', sa.Boolean(), nullable=True, comment='fit_ok, snr_fit (or, for the member of a joint pair with the higher snr_fit, snr_joint) >= min_snr, pass_peak_ratio, pass_split, pass_far, pass_score, not moving and not a duplicate'),
+    sa.Column('extra', sa.JSON().with_variant(postgresql.JSONB(astext_type=Text()), 'postgresql'), nullable=True, comment='columns of the detections table no declaration names'),
+    sa.ForeignKeyConstraint(['observation_id'], ['observations.id'], ondelete='CASCADE'),
+    sa.ForeignKeyConstraint(['source_id'], ['sources.id'], ),
+    sa.PrimaryKeyConstraint('id')
+    )
+    op.create_index(op.f('ix_detections_observation_id'), 'detections', ['observation_id'], unique=False)
+    op.create_index(op.f('ix_detections_source_id'), 'detections', ['source_id'], unique=False)
+    op.create_index('ix_detections_t_peak', 'detections', ['t_peak'], unique=False)
+    op.create_table('events',
+    sa.Column('id', sa.Integer(), autoincrement=True, nullable=False),
+    sa.Column('observation_id', sa.Integer(), nullable=False, comment='the observation it was ingested with'),
+    sa.Column('source_id', sa.Integer(), nullable=False, comment='persistent source'),
+    sa.Column('peak_snr', sa.Double(), nullable=True, comment="peak_flux / peak_flux_err: the event's significance"),
+    sa.Column('run_event_id', sa.BigInteger(), nullable=True, comment='event number in this run, in order of first detection'),
+    sa.Column('run_source_id', sa.BigInteger(), nullable=True, comment="events at one position within source_gap_hours share it (lightcurvedb's source)"),
+    sa.Column('event_uuid', sa.Text(), nullable=True, comment="the event's UUID, the same in every run that finds it (from its first detection) and in alerts and the database"),
+    sa.Column('source_uuid', sa.Text(), nullable=True, comment="its source's UUID (from the source's first event); the database resolves it to its persistent source"),
+    sa.Column('name', sa.Text(), nullable=True, comment="SOTR Jhhmmss.s+ddmmss: from the event's position"),
+    sa.Column('ra', sa.Double(), nullable=True, comment='inverse-variance weighted RA of its detections [deg]'),
+    sa.Column('dec', sa.Double(), nullable=True, comment='weighted Dec of its detections [deg]'),
+    sa.Column('pos_err', sa.Double(), nullable=True, comment='one-axis statistical error of the weighted position (no pointing systematic) [arcsec]'),
+    sa.Column('t_first', sa.Double(), nullable=True, comment="ctime of the first detection's peak sample [s]"),
+    sa.Column('t_last', sa.Double(), nullable=True, comment="ctime of the last detection's peak sample [s]"),
+    sa.Column('t_first_utc', sa.Text(), nullable=True, comment='t_first as ISO UTC'),
+    sa.Column('t_last_utc', sa.Text(), nullable=True, comment='t_last as ISO UTC'),
+    sa.Column('n_detections', sa.BigInteger(), nullable=True, comment='detections joined (crossings x wafers x bands)'),
+    sa.Column('obs_ids', sa.Text(), nullable=True, comment='observations with a detection (comma-separated)'),
+    sa.Column('wafers', sa.Text(), nullable=True, comment='wafers with a detection'),
+    sa.Column('bands', sa.Text(), nullable=True, comment='bands with a detection'),
+    sa.Column('peak_flux', sa.Double(), nullable=True, comment="brightest detection's fitted flux [mJy]"),
+    sa.Column('peak_flux_err', sa.Double(), nullable=True, comment='its error [mJy]'),
+    sa.Column('peak_band', sa.Text(), nullable=True, comment='its band'),
+    sa.Column('single_band', sa.Boolean(), nullable=True, comment='detected in one band only although another band of the same wafers was measured'),
+    sa.Column('joint_snr', sa.Double(), nullable=True, comment="highest S/N of a detected crossing combined with the other band's forced S/N at that crossing, (snr_a + snr_b) / sqrt(2)"),
+    sa.Column('alpha_mf', sa.Double(), nullable=True, comment='spectral index S ~ nu^alpha, f090/f150, from simultaneous crossings'),
+    sa.Column('alpha_mf_err', sa.Double(), nullable=True, comment='its error'),
+    sa.Column('alpha_uhf', sa.Double(), nullable=True, comment='spectral index f220/f280'),
+    sa.Column('alpha_uhf_err', sa.Double(), nullable=True, comment='its error'),
+    sa.Column('n_crossings', sa.BigInteger(), nullable=True, comment='light-curve points (crossings x bands measured)'),
+    sa.Column('n_upper_limits', sa.BigInteger(), nullable=True, comment='of which upper limits'),
+    sa.Column('note', sa.Text(), nullable=True, comment="what could not be measured, '' if nothing"),
+    sa.Column('far', sa.Double(), nullable=True, comment='lowest false-alarm rate of its detections, per wafer-band-hour (transient_significance; NaN without) [1 / h]'),
+    sa.Column('far_is_limit', sa.Boolean(), nullable=True, comment="that far is an upper limit (the time slides' resolution), not a count"),
+    sa.Column('catalogue', sa.Text(), nullable=True, comment="catalogue of the cross-matched source (the events config's `catalogue`), '' if none matched"),
+    sa.Column('cat_source_id', sa.BigInteger(), nullable=True, comment='its id there (socat source_id), -1 if none'),
+    sa.Column('cat_source_name', sa.Text(), nullable=True, comment='its name there'),
+    sa.Column('cat_ra', sa.Double(), nullable=True, comment="its RA (a solar-system object's at the event) [deg]"),
+    sa.Column('cat_dec', sa.Double(), nullable=True, comment='its Dec [deg]'),
+    sa.Column('cat_separation', sa.Double(), nullable=True, comment="distance from the event's position [arcmin]"),
+    sa.Column('cat_flux_ratio', sa.Double(), nullable=True, comment='peak_flux / the catalogued flux (NaN when the catalogue has none)'),
+    sa.Column('cat_class', sa.Text(), nullable=True, comment="catalogued_flare, catalogued, solar_system or new (so_transients.sources.crossmatch); '' when no catalogue was searched"),
+    sa.Column('extra', sa.JSON().with_variant(postgresql.JSONB(astext_type=Text()), 'postgresql'), nullable=True, comment='columns of the events file no declaration names'),
+    sa.ForeignKeyConstraint(['observation_id'], ['observations.id'], ondelete='CASCADE'),
+    sa.ForeignKeyConstraint(['source_id'], ['sources.id'], ),
+    sa.PrimaryKeyConstraint('id'),
+    sa.UniqueConstraint('observation_id', 'run_event_id')
+    )
+    op.create_index('ix_events_dec', 'events', ['dec'], unique=False)
+    op.create_index(op.f('ix_events_observation_id'), 'events', ['observation_id'], unique=False)
+    op.create_index(op.f('ix_events_peak_snr'), 'events', ['peak_snr'], unique=False)
+    op.create_index(op.f('ix_events_source_id'), 'events', ['source_id'], unique=False)
+    op.create_index('ix_events_t_first', 'events', ['t_first'], unique=False)
+    op.create_table('lightcurve_fits',
+    sa.Column('id', sa.Integer(), autoincrement=True, nullable=False),
+    sa.Column('observation_id', sa.Integer(), nullable=False, comment='the observation it was ingested with'),
+    sa.Column('source_id', sa.Integer(), nullable=False, comment='persistent source'),
+    sa.Column('run_event_id', sa.BigInteger(), nullable=True, comment='the event'),
+    sa.Column('bandpass', sa.Text(), nullable=True, comment='band fitted'),
+    sa.Column('s_peak', sa.Double(), nullable=True, comment='eq. 1 s_peak [mJy]'),
+    sa.Column('s_peak_err', sa.Double(), nullable=True, comment='error of s_peak (NaN: held) [mJy]'),
+    sa.Column('t_peak', sa.Double(), nullable=True, comment='eq. 1 t_peak [s]'),
+    sa.Column('t_peak_err', sa.Double(), nullable=True, comment='error of t_peak (NaN: held) [s]'),
+    sa.Column('t_rise', sa.Double(), nullable=True, comment='eq. 1 t_rise [s]'),
+    sa.Column('t_rise_err', sa.Double(), nullable=True, comment='error of t_rise (NaN: held) [s]'),
+    sa.Column('t_decay', sa.Double(), nullable=True, comment='eq. 1 t_decay [s]'),
+    sa.Column('t_decay_err', sa.Double(), nullable=True, comment='error of t_decay (NaN: held) [s]'),
+    sa.Column('eta_rise', sa.Double(), nullable=True, comment='eq. 1 eta_rise'),
+    sa.Column('eta_rise_err', sa.Double(), nullable=True, comment='error of eta_rise (NaN: held)'),
+    sa.Column('eta_decay', sa.Double(), nullable=True, comment='eq. 1 eta_decay'),
+    sa.Column('eta_decay_err', sa.Double(), nullable=True, comment='error of eta_decay (NaN: held)'),
+    sa.Column('chi2_red', sa.Double(), nullable=True, comment='reduced chi^2'),
+    sa.Column('n_points', sa.BigInteger(), nullable=True, comment='light-curve points fitted'),
+    sa.Column('fit_ok', sa.Boolean(), nullable=True, comment='the fit converged with finite errors'),
+    sa.Column('extra', sa.JSON().with_variant(postgresql.JSONB(astext_type=Text()), 'postgresql'), nullable=True, comment='columns of the fits file no declaration names'),
+    sa.ForeignKeyConstraint(['observation_id'], ['observations.id'], ondelete='CASCADE'),
+    sa.ForeignKeyConstraint(['source_id'], ['sources.id'], ),
+    sa.PrimaryKeyConstraint('id'),
+    sa.UniqueConstraint('observation_id', 'run_event_id', 'bandpass')
+    )
+    op.create_index(op.f('ix_lightcurve_fits_observation_id'), 'lightcurve_fits', ['observation_id'], unique=False)
+    op.create_index(op.f('ix_lightcurve_fits_source_id'), 'lightcurve_fits', ['source_id'], unique=False)
+    op.create_table('lightcurve_points',
+    sa.Column('id', sa.Integer(), autoincrement=True, nullable=False),
+    sa.Column('observation_id', sa.Integer(), nullable=False, comment='the observation it was ingested with'),
+    sa.Column('source_id', sa.Integer(), nullable=False, comment='persistent source'),
+    sa.Column('run_event_id', sa.BigInteger(), nullable=True, comment='the event measured'),
+    sa.Column('run_source_id', sa.BigInteger(), nullable=True, comment='its source (lightcurvedb source_id)'),
+    sa.Column('time', sa.Text(), nullable=True, comment="ISO UTC of the crossing's centre (lightcurvedb time)"),
+    sa.Column('ctime', sa.Double(), nullable=True, comment='the same as ctime [s]'),
+    sa.Column('ra', sa.Double(), nullable=True, comment="position measured at (held: the event's) [deg]"),
+    sa.Column('dec', sa.Double(), nullable=True, comment='position measured at [deg]'),
+    sa.Column('ra_uncertainty', sa.Double(), nullable=True, comment="the event position's one-axis error [deg]"),
+    sa.Column('dec_uncertainty', sa.Double(), nullable=True, comment='the same [deg]'),
+    sa.Column('flux', sa.Double(), nullable=True, comment='beam-fit amplitude with the position held [mJy]'),
+    sa.Column('flux_err', sa.Double(), nullable=True, comment="its error (the group's measured error scale) [mJy]"),
+    sa.Column('frequency', sa.BigInteger(), nullable=True, comment="band as lightcurvedb's integer frequency [GHz]"),
+    sa.Column('module', sa.Text(), nullable=True, comment='optics tube (det_info tube_slot)'),
+    sa.Column('obs_id', sa.Text(), nullable=True, comment='observation'),
+    sa.Column('wafer_slot', sa.Text(), nullable=True, comment='wafer'),
+    sa.Column('bandpass', sa.Text(), nullable=True, comment='band (det_info bandpass)'),
+    sa.Column('scan', sa.BigInteger(), nullable=True, comment='scan within the observation (as transient_find counts)'),
+    sa.Column('detected', sa.Boolean(), nullable=True, comment='a detection of the event is at this crossing'),
+    sa.Column('snr', sa.Double(), nullable=True, comment='flux / flux_err'),
+    sa.Column('upper_limit', sa.Double(), nullable=True, comment='max(flux, 0) + k flux_err where snr < detect_snr, else NaN [mJy]'),
+    sa.Column('offset', sa.Double(), nullable=True, comment='fitted constant C [mJy]'),
+    sa.Column('n_fit_dets', sa.BigInteger(), nullable=True, comment='detectors fitted'),
+    sa.Column('chi2_red', sa.Double(), nullable=True, comment='reduced chi^2 of the forced fit'),
+    sa.Column('extra', sa.JSON().with_variant(postgresql.JSONB(astext_type=Text()), 'postgresql'), nullable=True, comment='columns of the light-curve file no declaration names'),
+    sa.ForeignKeyConstraint(['observation_id'], ['observations.id'], ondelete='CASCADE'),
+    sa.ForeignKeyConstraint(['source_id'], ['sources.id'], ),
+    sa.PrimaryKeyConstraint('id')
+    )
+    op.create_index(op.f('ix_lightcurve_points_observation_id'), 'lightcurve_points', ['observation_id'], unique=False)
+    op.create_index('ix_lightcurve_points_source_ctime', 'lightcurve_points', ['source_id', 'ctime'], unique=False)
+    op.create_index(op.f('ix_lightcurve_points_source_id'), 'lightcurve_points', ['source_id'], unique=False)
+    # ### end Alembic commands ###

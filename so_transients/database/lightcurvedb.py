@@ -27,7 +27,7 @@ from datetime import datetime, timezone
 
 import numpy as np
 
-from so_transients.site.results import utc
+from so_transients.common.times import utc
 
 #: The fields of lightcurvedb's FluxMeasurement, in its order.
 FIELDS = ("measurement_id", "frequency", "module", "source_id", "time", "ra", "dec",

@@ -23,7 +23,7 @@ from so_transients.common.candidates import typed_table
 from so_transients.events.lightcurve_fit import (
     FLARE_PARAMS, FlareFitConfig, fit_flare, spectral_index
 )
-from so_transients.site.results import utc
+from so_transients.common.times import utc
 from so_transients.sources.catalog import Catalogue, Ephemerides
 from so_transients.sources.crossmatch import CrossmatchConfig, crossmatch
 from so_transients.events import schema

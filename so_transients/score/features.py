@@ -53,6 +53,27 @@ FEATURES = {
 }
 
 
+class _Reads(dict):
+    """A candidate table that records which columns are read of it (one zero each)."""
+
+    def __getitem__(self, name):
+        self.setdefault(name, np.zeros(1))
+        return dict.__getitem__(self, name)
+
+
+def input_columns(names=None) -> tuple:
+    """The candidate columns the features ``names`` (default: every one) are computed from,
+    in the order they are first read."""
+    reads = _Reads()
+    for name in (list(FEATURES) if names is None else names):
+        FEATURES[name](reads)
+    return tuple(reads)
+
+
+#: The candidate columns every feature together reads
+INPUT_COLUMNS = input_columns()
+
+
 def feature_matrix(cands, names=None) -> np.ndarray:
     """(n_candidates, n_features) array of ``names`` (default: every feature) for the
     candidates ``cands`` (a dict of schema columns, or a table), NaN as :data:`MISSING`."""

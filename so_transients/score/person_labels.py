@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 from astropy.table import Table, vstack
 
+from so_transients.score.features import INPUT_COLUMNS
+
 #: The candidate columns :data:`so_transients.score.features.FEATURES` are computed from:
 #: what the page carries of each detection, so that its labels can train the score.
-DETECTION_COLUMNS = ("snr_max", "snr_fit", "n_dets", "n_samples", "n_fit_dets", "aspect_ratio",
-                     "time_rms", "instant_rms", "opposite_snr", "pol_fraction", "chi2_red",
-                     "offset", "offset_err", "t_start", "t_stop")
+DETECTION_COLUMNS = INPUT_COLUMNS
 
 LABEL_VALUES = {"real": 1, "artefact": 0}
 KNOWN = set(LABEL_VALUES) | {"unsure"}

@@ -19,7 +19,7 @@ from so_transients.database.command import get_parser, main
 from so_transients.database.engine import open_database
 from so_transients.database.queries import counts, find_events, find_sources, lightcurve
 from so_transients.site.pipeline import PAPER, run_site_pipeline, write_site_config
-from so_transients.site.results import utc
+from so_transients.common.times import utc
 
 from tests.conftest import run_sim
 

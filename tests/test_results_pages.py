@@ -6,6 +6,8 @@ from pathlib import Path
 import numpy as np
 from astropy.table import Table
 
+from so_transients.campaign.drawn_wafer import config_summaries
+
 RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results"
 
 
@@ -36,3 +38,50 @@ def test_the_paired_full_check_on_the_table2_page_is_its_table():
     # the page's conclusion: no band differs at 5 %
     assert (np.asarray(table["mcnemar_p"]) > 0.05).all()
     assert re.search(r"every p > 0\.05", (RESULTS / "table2.md").read_text())
+
+
+def test_the_drawn_wafer_summaries_are_their_tables():
+    """The drawn-wafer page's summaries (both simulators, both shipped configs) are the sums of
+    the per-realization tables behind them, and they meet issue 45's bounds: at least 20
+    realizations, 95 % of the 3 Jy flares found and within 10 % and 0.2', none mislocated."""
+    page = RESULTS / "drawn_wafers.md"
+    rows = markdown_rows(page, "| simulator | table | config | realizations |")
+    assert {(r[0], r[2]) for r in rows} == {(s, c) for s in ("this package's", "TOAST 3")
+                                            for c in ("preprocess_paper.yaml",
+                                                      "preprocess_production.yaml")}
+    for cells in rows:
+        table = Table.read(RESULTS / cells[1].strip("`"))
+        assert config_summaries(table[table["config"] == cells[2]]) == [cells[2:]], cells[:3]
+        n, found, good = int(cells[3]), int(cells[4].split(" / ")[0]), int(cells[5].split()[0])
+        crossed = int(cells[4].split(" / ")[1])
+        assert n >= 20 and found >= 0.95 * crossed and good >= 0.95 * crossed, cells[:3]
+        assert cells[10] == "0", cells[:3]
+    noise = markdown_rows(page, "| config | table | seeds | false detections |")
+    assert {r[0] for r in noise} == {"preprocess_paper.yaml", "preprocess_production.yaml"}
+    for cells in noise:
+        table = Table.read(RESULTS / cells[1].strip("`"))
+        mine = table[table["config"] == cells[0]]
+        hours = float(np.sum(mine["hours"]))
+        assert cells[2] == f"{min(mine['seed'])}-{max(mine['seed'])}"
+        assert [int(cells[3]), float(cells[4])] == [int(np.sum(mine["false"])), round(hours, 2)]
+        assert float(cells[5]) == round(int(np.sum(mine["false"])) / hours, 2)
+        assert hours >= 5
+
+
+def test_the_score_page_is_the_shipped_models_figures():
+    """The score page's table of held-out candidates is what the shipped model records of
+    itself (``figures`` in so_transients/score/models/real_score.json, written by training)."""
+    import json
+
+    model = Path(__file__).resolve().parents[1] / "so_transients" / "score" / "models"
+    figures = json.loads((model / "real_score.json").read_text())["figures"]
+    rows = markdown_rows(RESULTS / "score.md", "| held out | mode | candidates | real |")
+    assert len(rows) == 8
+    for held, mode, kind, real, false, at99, at999, real_kept, false_kept in rows:
+        fig = figures["scan" if "other scan" in held else "test"][f"{mode}/{kind}"]
+        f99, f999, det = fig["0.99"], fig["0.999"], fig["detections"]
+        assert [int(real), int(false)] == [f99["n_real"], f99["n_false"]]
+        assert at99 == f"{f99['rejected']:.3f} ({f99['cut']:.3f})"
+        assert at999 == f"{f999['rejected']:.3f}"
+        assert real_kept == f"{det['real_kept']} / {det['real']}"
+        assert false_kept == f"{det['artefact_kept']} / {det['artefact']}"

@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed
 # OpenMP threads spin-wait on 2 cores (pyfftw, so3g): let idle threads sleep.
 export OMP_WAIT_POLICY ?= passive
 
-.PHONY: demo test test-fast lint docs bench bench-site clean install
+.PHONY: demo test test-fast test-py313 lint docs bench bench-site clean install
 
 # -qq: pip's errors only (its warnings about index locations this machine's pip
 # configuration names but lacks are noise here)
@@ -32,6 +32,14 @@ test: $(STAMP)
 # The quick subset for development: everything but the end-to-end tests marked `slow`.
 test-fast: $(STAMP)
 	$(PY) -m pytest -n auto --dist loadfile -m "not slow"
+
+# The quick subset again on Python 3.13, the newest interpreter the dependency ranges admit
+# (SO's environments beside sotrplib are 3.12+), in its own environment .venv313.
+PY313 ?= $(shell pyenv which python3.13 2>/dev/null || PYENV_VERSION=3.13 pyenv which python 2>/dev/null || command -v python3.13)
+test-py313:
+	@test -x .venv313/bin/python || $(PY313) -m venv .venv313
+	@.venv313/bin/python -m pip install -qq --disable-pip-version-check -e '.[test]' -c constraints.txt
+	.venv313/bin/python -m pytest -n auto --dist loadfile -m "not slow"
 
 # ruff, configured in pyproject.toml
 lint: $(STAMP)

@@ -99,7 +99,7 @@ def config_summaries(out) -> list:
     for config in sorted(set(out["config"])):
         r = out[out["config"] == config]
         good, crossed = int(np.sum(r["bright_good"])), int(np.sum(r["bright_crossed"]))
-        rows.append([config, str(len(r)),
+        rows.append([str(config), str(len(r)),
                      f"{int(np.sum(r['bright_found']))} / {crossed}",
                      f"{good} ({100 * good / crossed:.1f} %)",
                      f"{np.nanmin(r['flux_ratio_worst']):.3f}",

@@ -1,6 +1,6 @@
 """The wheel carries what its commands read: a non-editable install, away from the checkout,
-finds the shipped configs (the demo's simulation, the site and events configs) and the vetting
-pages' templates in the package."""
+finds the shipped configs (the demo's simulation, the site and events configs), the vetting
+pages' templates and the database's migrations in the package."""
 import subprocess
 import sys
 from pathlib import Path
@@ -22,6 +22,11 @@ for path in (cli.DEMO_CONFIG, PRODUCTION, PAPER, *templates):
 dataset = Path(sys.argv[2])
 assert cli.main(["site-config", str(dataset)]) == 0
 assert cli.main(["site-config", str(dataset), "--mode", "paper"]) == 0
+from so_transients.database import schema
+from so_transients.database.engine import open_database
+assert schema.MIGRATIONS.is_relative_to(installed)
+with open_database(dataset / "events.db").connect() as conn:   # made by the installed revisions
+    assert schema.stored_revision(conn) == schema.HEAD
 print("OK", sorted(p.name for p in dataset.glob("*.yaml")))
 """
 

@@ -91,13 +91,19 @@ def write_transaction(engine: sa.Engine):
             yield conn
 
 
+def check_schema(engine: sa.Engine):
+    """:func:`schema.check_current` on ``engine``'s database, once per engine."""
+    if engine not in _CHECKED:
+        with engine.connect() as conn:
+            schema.check_current(conn)
+        _CHECKED.add(engine)
+
+
 @contextmanager
 def read_connection(engine: sa.Engine):
     """A connection for queries, after checking the schema is current (once per engine)."""
+    check_schema(engine)
     with engine.connect() as conn:
-        if engine not in _CHECKED:
-            schema.check_current(conn)
-            _CHECKED.add(engine)
         yield conn
 
 
@@ -124,6 +130,5 @@ def open_database(path_or_url, create=True) -> sa.Engine:
             empty = schema.stored_revision(conn) is None
         if empty:
             migrate(engine)
-    with read_connection(engine):
-        pass
+    check_schema(engine)
     return engine

@@ -35,7 +35,7 @@ from astropy.table import Table
 
 from so_transients.common.angles import ARCSEC, DEG
 from so_transients.database import schema
-from so_transients.database.engine import write_transaction
+from so_transients.database.engine import check_schema, write_transaction
 from so_transients.database.runs import ObservationRows, Run, split
 from so_transients.events.association import AssociationConfig, link, weighted_position
 from so_transients.events.tables import event_name
@@ -288,9 +288,9 @@ def ingest_run(engine: sa.Engine, run: Run, cfg: AssociationConfig | None = None
     each transaction once its rows are written, before the commit."""
     cfg = cfg or AssociationConfig()
     results = []
+    check_schema(engine)        # an older database is refused, naming `db migrate`
     for part in split(run):
         with write_transaction(engine) as conn:
-            schema.check_current(conn)      # refused, naming `db migrate`, when older
             result = ingest_observation(conn, part, run, cfg)
             if on_written is not None:
                 on_written(part.obs_id, conn)

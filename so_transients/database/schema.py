@@ -184,8 +184,10 @@ def alembic_config(conn=None) -> Config:
     return cfg
 
 
-#: the newest revision (what this version of the package writes)
-HEAD = ScriptDirectory.from_config(alembic_config()).get_current_head()
+#: the revisions this version of the package knows, oldest first (read once), and the newest,
+#: which it writes
+REVISIONS = tuple(reversed(list(ScriptDirectory.from_config(alembic_config()).walk_revisions())))
+HEAD = REVISIONS[-1].revision
 
 
 def stored_revision(conn) -> str | None:
@@ -198,13 +200,8 @@ def stored_revision(conn) -> str | None:
     return revision
 
 
-def _known(revision) -> bool:
-    script = ScriptDirectory.from_config(alembic_config())
-    return revision in {r.revision for r in script.walk_revisions()}
-
-
 def _refuse_unknown(conn, revision):
-    if revision is not None and not _known(revision):
+    if revision is not None and revision not in {r.revision for r in REVISIONS}:
         raise SchemaError(f"{conn.engine.url!r}: schema revision {revision} is newer than this "
                           f"so_transients knows ({HEAD}): upgrade so_transients")
 
@@ -220,9 +217,7 @@ def migrate(conn) -> list:
     if before is not None and MigrationContext.configure(conn).get_current_revision() is None:
         command.stamp(cfg, before)              # made by the package's own runner
     command.upgrade(cfg, "head")
-    script = ScriptDirectory.from_config(cfg)
-    done = [f"schema revision {r.revision}: {r.doc}"
-            for r in reversed(list(script.walk_revisions("base", "head")))
+    done = [f"schema revision {r.revision}: {r.doc}" for r in REVISIONS
             if before is None or int(r.revision) > int(before)]
     return done + add_missing_columns(conn)
 

@@ -2,13 +2,19 @@
 
 ``sotodlib.utils.procs_pool.get_exec_env`` gives a process pool on one machine and
 ``mpi4py.futures`` under ``mpirun`` (rank 0 runs the caller; the other ranks serve as
-workers and get no pool). Used by the campaign and by ``so-transients events``.
+workers and get no pool). Used by the campaign, ``so-transients events`` and the vetting
+pages. A local pool's workers end with the process that made them, however it ends (a
+SIGTERM, SIGKILL or the kernel's out-of-memory killer): none is left running a unit of a
+campaign nobody waits for.
 """
 from __future__ import annotations
 
 import concurrent.futures
+import ctypes
 import multiprocessing
 import os
+import signal
+import sys
 
 from tqdm.auto import tqdm
 
@@ -36,7 +42,49 @@ def executor(nproc):
         pool = concurrent.futures.ProcessPoolExecutor(
             nproc, mp_context=multiprocessing.get_context("spawn"))
         as_completed = concurrent.futures.as_completed
+    if isinstance(pool, concurrent.futures.ProcessPoolExecutor):
+        pool = OwnedPool(pool)
     return pool, as_completed
+
+
+#: Linux's ``prctl`` option that sends a process a signal when its parent ends.
+PR_SET_PDEATHSIG = 1
+
+
+class OwnedPool:
+    """A local process pool whose workers are killed when this process ends: every task
+    first asks the kernel (``prctl(PR_SET_PDEATHSIG, SIGKILL)``, Linux) to kill its worker
+    once the parent is gone, and a worker whose parent is already gone ends at once.
+    Everything but ``submit`` is the wrapped pool's."""
+
+    def __init__(self, pool: concurrent.futures.ProcessPoolExecutor):
+        self.pool = pool
+        self.parent = os.getpid()
+
+    def submit(self, fn, /, *args, **kwargs):
+        return self.pool.submit(_owned_call, self.parent, fn, *args, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self.pool, name)
+
+
+def _owned_call(parent, fn, *args, **kwargs):
+    die_with_parent(parent)
+    return fn(*args, **kwargs)
+
+
+def die_with_parent(parent: int):
+    """Make this process end when ``parent`` (its parent's pid) ends; end now if it has
+    already (between the worker's start and this call). Does nothing off Linux."""
+    if not sys.platform.startswith("linux"):
+        return
+    if not getattr(die_with_parent, "armed", False):
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
+            raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
+        die_with_parent.armed = True
+    if os.getppid() != parent:
+        os._exit(1)
 
 
 def is_worker_rank(pool, nproc) -> bool:

@@ -11,12 +11,15 @@ from so_transients.campaign.drawn_wafer import config_summaries
 RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results"
 
 
-def markdown_rows(page: Path, header_start: str) -> list:
+def markdown_rows(page: Path, header_start: str, after: str | None = None,
+                  header: bool = False) -> list:
     """The body rows (lists of cells) of the Markdown table of ``page`` whose header row
-    starts with ``header_start``."""
+    starts with ``header_start`` (the first after the line ``after``, if given); with
+    ``header``, the header's cells first."""
     lines = page.read_text().splitlines()
-    start = next(i for i, line in enumerate(lines) if line.startswith(header_start))
-    rows = []
+    first = lines.index(after) if after is not None else 0
+    start = next(i for i, line in enumerate(lines) if i > first and line.startswith(header_start))
+    rows = [[c.strip() for c in lines[start].strip("|").split("|")]] if header else []
     for line in lines[start + 2:]:
         if not line.startswith("|"):
             break
@@ -56,16 +59,19 @@ def test_the_drawn_wafer_summaries_are_their_tables():
         crossed = int(cells[4].split(" / ")[1])
         assert n >= 20 and found >= 0.95 * crossed and good >= 0.95 * crossed, cells[:3]
         assert cells[10] == "0", cells[:3]
-    noise = markdown_rows(page, "| config | table | seeds | false detections |")
-    assert {r[0] for r in noise} == {"preprocess_paper.yaml", "preprocess_production.yaml"}
-    for cells in noise:
-        table = Table.read(RESULTS / cells[1].strip("`"))
-        mine = table[table["config"] == cells[0]]
-        hours = float(np.sum(mine["hours"]))
-        assert cells[2] == f"{min(mine['seed'])}-{max(mine['seed'])}"
-        assert [int(cells[3]), float(cells[4])] == [int(np.sum(mine["false"])), round(hours, 2)]
-        assert float(cells[5]) == round(int(np.sum(mine["false"])) / hours, 2)
-        assert hours >= 5
+    noise = markdown_rows(page, "| config | detectors | table | seeds | false detections |")
+    assert {(r[0], r[1]) for r in noise} == {("preprocess_paper.yaml", "drawn"),
+                                             ("preprocess_paper.yaml", "ideal"),
+                                             ("preprocess_production.yaml", "drawn")}
+    for config, _, name, seeds, false, hours, rate in noise:
+        table = Table.read(RESULTS / name.strip("`"))
+        mine = table[table["config"] == config]
+        total = float(np.sum(mine["hours"]))
+        assert seeds == f"{min(mine['seed'])}-{max(mine['seed'])}"
+        assert len(set(mine["seed"])) == max(mine["seed"]) - min(mine["seed"]) + 1
+        assert [int(false), float(hours)] == [int(np.sum(mine["false"])), round(total, 2)]
+        assert float(rate) == round(int(np.sum(mine["false"])) / total, 2)
+        assert total >= 5
 
 
 def test_the_score_page_is_the_shipped_models_figures():
@@ -85,3 +91,4 @@ def test_the_score_page_is_the_shipped_models_figures():
         assert at999 == f"{f999['rejected']:.3f}"
         assert real_kept == f"{det['real_kept']} / {det['real']}"
         assert false_kept == f"{det['artefact_kept']} / {det['artefact']}"
+

@@ -163,17 +163,24 @@ def test_two_concurrent_ingests_lose_and_duplicate_nothing(new_db, tmp_path):
                                str(tmp_path / f"ready{k}"), str(go)], cwd=REPO,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
              for k, folder in enumerate(runs)]
-    deadline = time.time() + 120
-    while not all((tmp_path / f"ready{k}").exists() for k in range(2)):
-        assert time.time() < deadline and all(p.poll() is None for p in procs), \
-            [p.communicate() for p in procs]
-        time.sleep(0.05)
-    go.touch()
-    spans = []
-    for p in procs:
-        out, err = p.communicate(timeout=300)
-        assert p.returncode == 0, err
-        spans.append([float(v) for v in out.split()])
+    try:
+        deadline = time.time() + 300
+        while not all((tmp_path / f"ready{k}").exists() for k in range(2)):
+            if time.time() > deadline or any(p.poll() is not None for p in procs):
+                for p in procs:     # they wait for `go`: end them before reading what they said
+                    p.kill()
+                pytest.fail(f"the ingests did not start: {[p.communicate() for p in procs]}")
+            time.sleep(0.05)
+        go.touch()
+        spans = []
+        for p in procs:
+            out, err = p.communicate(timeout=300)
+            assert p.returncode == 0, err
+            spans.append([float(v) for v in out.split()])
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
     assert max(s[0] for s in spans) < min(s[1] for s in spans), "the ingests did not overlap"
     reference = new_db()
     for folder in runs:

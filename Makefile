@@ -45,7 +45,7 @@ test-fast: $(STAMP)
 PY313 ?= $(shell pyenv which python3.13 2>/dev/null || PYENV_VERSION=3.13 pyenv which python 2>/dev/null || command -v python3.13)
 test-py313:
 	@test -x .venv313/bin/python || $(PY313) -m venv .venv313
-	@.venv313/bin/python -m pip install -qq --disable-pip-version-check -e '.[test]' -c constraints.txt
+	@.venv313/bin/python -m pip install -qq --disable-pip-version-check -e '.[test,docs]' -c constraints.txt
 	.venv313/bin/python -m pytest -n auto --dist loadfile -m "not slow"
 
 # ruff, configured in pyproject.toml

@@ -41,12 +41,14 @@ test-fast: $(STAMP)
 	$(PY) -m pytest -n auto --dist loadfile -m "not slow"
 
 # The quick subset again on Python 3.13, the newest interpreter the dependency ranges admit
-# (SO's environments beside sotrplib are 3.12+), in its own environment .venv313.
+# (SO's environments beside sotrplib are 3.12+), in its own environment .venv313; CI runs it
+# beside `make test` (.ci/run) with PY313_WORKERS=1.
 PY313 ?= $(shell pyenv which python3.13 2>/dev/null || PYENV_VERSION=3.13 pyenv which python 2>/dev/null || command -v python3.13)
+PY313_WORKERS ?= auto
 test-py313:
 	@test -x .venv313/bin/python || $(PY313) -m venv .venv313
 	@.venv313/bin/python -m pip install -qq --disable-pip-version-check -e '.[test,docs]' -c constraints.txt
-	.venv313/bin/python -m pytest -n auto --dist loadfile -m "not slow"
+	.venv313/bin/python -m pytest -n $(PY313_WORKERS) --dist loadfile -m "not slow" -p no:cacheprovider
 
 # ruff, configured in pyproject.toml
 lint: $(STAMP)

@@ -1,6 +1,7 @@
 """The wheel carries what its commands read: a non-editable install, away from the checkout,
 finds the shipped configs (the demo's simulation, the site and events configs), the vetting
 pages' templates and the database's migrations in the package."""
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -31,10 +32,22 @@ print("OK", sorted(p.name for p in dataset.glob("*.yaml")))
 """
 
 
+def source_copy(folder) -> Path:
+    """What the wheel is built from, copied: pip builds in the source tree (``build/``,
+    ``*.egg-info``), and CI runs this test on two interpreters at once."""
+    folder.mkdir()
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(REPO / name, folder / name)
+    shutil.copytree(REPO / "so_transients", folder / "so_transients",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    return folder
+
+
 def test_a_wheel_installed_elsewhere_finds_its_configs(tmp_path):
     wheels, target, dataset = tmp_path / "wheels", tmp_path / "site", tmp_path / "dataset"
     pip = [sys.executable, "-m", "pip", "--disable-pip-version-check", "-q"]
-    subprocess.run([*pip, "wheel", "--no-deps", "-w", str(wheels), str(REPO)], check=True)
+    source = source_copy(tmp_path / "source")
+    subprocess.run([*pip, "wheel", "--no-deps", "-w", str(wheels), str(source)], check=True)
     (wheel,) = wheels.glob("so_transients-*.whl")
     subprocess.run([*pip, "install", "--no-deps", "--target", str(target), str(wheel)],
                    check=True)

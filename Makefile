@@ -23,7 +23,8 @@ $(STAMP): pyproject.toml constraints.txt
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
 	@echo "installing the environment in $(VENV) (first use only)"
 	@$(PIP) --upgrade pip
-	@$(PIP) -e '.[test,docs]' -c constraints.txt   # CI's exact set (pyproject.toml: ranges)
+	@# --no-compile: a module is byte-compiled when first imported, not every file installed
+	@$(PIP) --no-compile -e '.[test,docs]' -c constraints.txt   # CI's exact set (pyproject.toml: ranges)
 	@touch $(STAMP)
 
 install: $(STAMP)
@@ -32,13 +33,15 @@ demo: $(STAMP)
 	$(VENV)/bin/so-transients demo --config configs/sim_demo.yaml --out data/demo
 
 # One worker per core, each running whole test modules (their module-scoped datasets are
-# simulated once); `pytest` alone runs them one at a time.
+# simulated once), the end-to-end modules first (tests/conftest.py); `pytest` alone runs
+# them one at a time.
+XDIST  := -n auto --dist loadfile --no-loadscope-reorder
 test: $(STAMP)
-	$(PY) -m pytest -n auto --dist loadfile
+	$(PY) -m pytest $(XDIST)
 
 # The quick subset for development: everything but the end-to-end tests marked `slow`.
 test-fast: $(STAMP)
-	$(PY) -m pytest -n auto --dist loadfile -m "not slow"
+	$(PY) -m pytest $(XDIST) -m "not slow"
 
 # The quick subset again on Python 3.13, the newest interpreter the dependency ranges admit
 # (SO's environments beside sotrplib are 3.12+), in its own environment .venv313; CI runs it
@@ -47,8 +50,8 @@ PY313 ?= $(shell pyenv which python3.13 2>/dev/null || PYENV_VERSION=3.13 pyenv 
 PY313_WORKERS ?= auto
 test-py313:
 	@test -x .venv313/bin/python || $(PY313) -m venv .venv313
-	@.venv313/bin/python -m pip install -qq --disable-pip-version-check -e '.[test,docs]' -c constraints.txt
-	.venv313/bin/python -m pytest -n $(PY313_WORKERS) --dist loadfile -m "not slow" -p no:cacheprovider
+	@.venv313/bin/python -m pip install -qq --disable-pip-version-check --no-compile -e '.[test,docs]' -c constraints.txt
+	.venv313/bin/python -m pytest -n $(PY313_WORKERS) --dist loadfile --no-loadscope-reorder -m "not slow" -p no:cacheprovider
 
 # ruff, configured in pyproject.toml
 lint: $(STAMP)

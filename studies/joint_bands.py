@@ -35,6 +35,7 @@ from tqdm import tqdm
 from so_transients.campaign.config import load_campaign, read_study_config
 from so_transients.campaign.noise import GroupState
 from so_transients.campaign.noise_model import filtered_snr
+from so_transients.campaign.provenance import commit, today
 from so_transients.campaign.run import prepare_noise
 from so_transients.campaign.stats import thresholds
 from so_transients.coherent.config import find_settings
@@ -258,10 +259,15 @@ def main(argv=None):
             for alpha in cfg.spectral_indices:
                 rows_eff += inject(states, searches, thr, cfg, camp, sig, scan, t_rise, alpha,
                                    rng, dict(obs_id=obs, wafer=wafer))
-    report(cfg, out, Table(rows=rows_eff), Table(rows=rows_bg))
+    provenance = [f"python studies/joint_bands.py {args.config}",
+                  f"commit {commit()}, {today()}; campaign {cfg.campaign}"]
+    report(cfg, out, Table(rows=rows_eff), Table(rows=rows_bg), provenance)
 
 
-def report(cfg, out, flares, backgrounds):
+def report(cfg, out, flares, backgrounds, provenance=()):
+    """The tables and the figure; ``provenance``: comment lines every table carries (the
+    command, commit and date)."""
+    backgrounds.meta["comments"] = list(provenance)
     backgrounds.write(out / "backgrounds.ecsv", overwrite=True)
     eff, thr = [], []
     for t_rise in cfg.t_rise:
@@ -281,6 +287,7 @@ def report(cfg, out, flares, backgrounds):
     eff, thr = Table(rows=eff), Table(rows=thr)
     for table in (eff, thr):
         table["t_rise"].unit = "s"
+        table.meta["comments"] = list(provenance)
     for name in ("s_peak", "s50", "s50_err", "s90", "s90_err"):
         (eff if name == "s_peak" else thr)[name].unit = "mJy"
     eff.write(out / "efficiency.ecsv", overwrite=True)

@@ -13,7 +13,7 @@ export MALLOC_MMAP_THRESHOLD_ ?= 4294967296
 export MALLOC_TRIM_THRESHOLD_ ?= 17179869184
 export MALLOC_TOP_PAD_ ?= 1073741824
 
-.PHONY: demo test test-fast test-py313 lint docs bench bench-site clean install
+.PHONY: demo test test-slow test-fast test-py313 install-py313 lint docs bench bench-site clean install
 
 # -qq: pip's errors only (its warnings about index locations this machine's pip
 # configuration names but lacks are noise here)
@@ -23,8 +23,7 @@ $(STAMP): pyproject.toml constraints.txt
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
 	@echo "installing the environment in $(VENV) (first use only)"
 	@$(PIP) --upgrade pip
-	@# --no-compile: a module is byte-compiled when first imported, not every file installed
-	@$(PIP) --no-compile -e '.[test,docs]' -c constraints.txt   # CI's exact set (pyproject.toml: ranges)
+	@$(PIP) -e '.[test,docs]' -c constraints.txt   # CI's exact set (pyproject.toml: ranges)
 	@touch $(STAMP)
 
 install: $(STAMP)
@@ -33,25 +32,28 @@ demo: $(STAMP)
 	$(VENV)/bin/so-transients demo --config configs/sim_demo.yaml --out data/demo
 
 # One worker per core, each running whole test modules (their module-scoped datasets are
-# simulated once), the end-to-end modules first (tests/conftest.py); `pytest` alone runs
-# them one at a time.
-XDIST  := -n auto --dist loadfile --no-loadscope-reorder
+# simulated once); `pytest` alone runs them one at a time.
+XDIST  := -n auto --dist loadfile
 test: $(STAMP)
 	$(PY) -m pytest $(XDIST)
+
+# The end-to-end tests alone (CI runs the quick ones on Python 3.13: .ci/run).
+test-slow: $(STAMP)
+	$(PY) -m pytest $(XDIST) -m slow
 
 # The quick subset for development: everything but the end-to-end tests marked `slow`.
 test-fast: $(STAMP)
 	$(PY) -m pytest $(XDIST) -m "not slow"
 
 # The quick subset again on Python 3.13, the newest interpreter the dependency ranges admit
-# (SO's environments beside sotrplib are 3.12+), in its own environment .venv313; CI runs it
-# beside `make test` (.ci/run) with PY313_WORKERS=1.
+# (SO's environments beside sotrplib are 3.12+), in its own environment .venv313.
 PY313 ?= $(shell pyenv which python3.13 2>/dev/null || PYENV_VERSION=3.13 pyenv which python 2>/dev/null || command -v python3.13)
-PY313_WORKERS ?= auto
-test-py313:
+install-py313:
 	@test -x .venv313/bin/python || $(PY313) -m venv .venv313
-	@.venv313/bin/python -m pip install -qq --disable-pip-version-check --no-compile -e '.[test,docs]' -c constraints.txt
-	.venv313/bin/python -m pytest -n $(PY313_WORKERS) --dist loadfile --no-loadscope-reorder -m "not slow" -p no:cacheprovider
+	@.venv313/bin/python -m pip install -qq --disable-pip-version-check -e '.[test,docs]' -c constraints.txt
+
+test-py313: install-py313
+	.venv313/bin/python -m pytest $(XDIST) -m "not slow" -p no:cacheprovider
 
 # ruff, configured in pyproject.toml
 lint: $(STAMP)

@@ -55,15 +55,6 @@ def run_imperfect_sim(path, flare, duration, dead_mode="nan", seed=43):
                    flares={"list": [flare]})
 
 
-def pytest_collection_modifyitems(config, items):
-    """Modules with a ``slow`` test first, the quick ones after (each keeping its order):
-    with ``make test``'s one module per core (``--dist loadfile --no-loadscope-reorder``)
-    the long end-to-end modules start early and the short ones fill in at the end, instead
-    of a 3-minute module starting last while the other core idles."""
-    slow = {item.path for item in items if item.get_closest_marker("slow")}
-    items.sort(key=lambda item: item.path not in slow)     # a stable sort
-
-
 @pytest.fixture(scope="module")
 def module_tmp(tmp_path_factory):
     """``module_tmp(name)``: a new folder for a module-scoped fixture's data, deleted once

@@ -178,3 +178,43 @@ def test_the_table2_flux_pointing_and_false_detections_are_the_committed_tables(
         assert float(hours) == round(float(row["wafer_hours"]), 2), band
         assert int(noise.split(":")[0]) == row["n_noise"], band
         assert int(inverted.split(":")[0]) == row["n_inverted"], band
+
+
+def test_the_null_fit_tail_is_its_tables():
+    """The drawn-wafer page's null-fit tail (studies/null_fit_tail.py): the counts beyond
+    each level against a Gaussian's, their split by a cosmic ray on the fit's largest
+    detector, and the figures the text quotes, are the committed tables'."""
+    page = RESULTS / "drawn_wafers.md"
+    text = " ".join(page.read_text().split())
+    data = RESULTS / "data" / "null_fit_tail"
+    summary, rows = Table.read(data / "summary.ecsv"), Table.read(data / "rows.ecsv")
+    levels = ("3", "3.5", "4", "4.5", "5")
+    table = markdown_rows(page, "| wafer | null fits | error scale |")
+    assert len(table) == len(summary) + 1
+    for cells, row in zip(table, summary):
+        assert cells[0] == f"{row['kind']} {row['seed']}"
+        assert cells[1:3] == [f"{row['n_fits']:,}", f"{row['error_scale']:.3f}"]
+        assert [int(c) for c in cells[3:]] == [row[f"n_beyond_{v}"] for v in levels]
+    gauss = [float(summary[0][f"gauss_beyond_{v}"]) for v in levels]
+    assert table[-1][3:] == [f"{g:.1f}" if g >= 1 else f"{g:.2f}" for g in gauss]
+    drawn = rows[rows["kind"] == "drawn"]
+    ray = np.asarray(drawn["dt_cosmic_ray"]) < 1.0          # NaN: none on that detector
+    z = np.abs(np.asarray(drawn["z"]))
+    split = markdown_rows(page, "| beyond | with a cosmic ray | without |")
+    for level, with_ray, without in split:
+        beyond = z > float(level)
+        assert [int(with_ray), int(without)] == [int(np.sum(beyond & ray)),
+                                                 int(np.sum(beyond & ~ray))], level
+    assert [r[0] for r in split] == ["3.5", "4", "4.5", "5"]
+    with_rays = drawn[ray]
+    share = np.percentile(with_rays["top_share"], [10, 50, 90]) * 100
+    assert f"a median {share[1]:.0f} % of the fitted amplitude (10-90 %: " \
+           f"{share[0]:.0f}-{share[2]:.0f} %)" in text
+    sigma = np.percentile(with_rays["sigma_ratio"], [10, 90])
+    peak = np.percentile(with_rays["peak_snr"], [10, 90])
+    assert f"its noise {sigma[0]:.2f}-{sigma[1]:.2f} of the band's median" in text
+    assert f"its own S/N {peak[0]:.0f}-{peak[1]:.0f} in the window" in text
+    d, i = summary[summary["kind"] == "drawn"][0], summary[summary["kind"] == "ideal"][0]
+    assert (f"spans {d['inflation_p5']:.2f}-{d['inflation_p95']:.2f} on the drawn wafer (5-95 %), "
+            f"against the band's {d['inflation_band']:.2f} that the fit uses; on the ideal "
+            f"wafer {i['inflation_p5']:.2f}-{i['inflation_p95']:.2f}") in text

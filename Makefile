@@ -37,7 +37,7 @@ XDIST  := -n auto --dist loadfile
 test: $(STAMP)
 	$(PY) -m pytest $(XDIST)
 
-# The end-to-end tests alone (CI runs the quick ones on Python 3.13: .ci/run).
+# The end-to-end tests alone.
 test-slow: $(STAMP)
 	$(PY) -m pytest $(XDIST) -m slow
 

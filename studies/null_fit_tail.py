@@ -42,7 +42,9 @@ from so_transients.campaign.search_steps import split_pipe
 from so_transients.common import pointing
 from so_transients.common.robust import clipped_std
 from so_transients.common.scan_geometry import samples_in
-from so_transients.detect.fit import FitConfig, FitInputs, _beam_samples, fit_window, window_arrays
+from so_transients.detect.fit import (
+    FitConfig, FitInputs, _beam_samples, fit_window, null_ratio, window_arrays
+)
 from so_transients.detect.matched_filter import expand_bins, filter_kernels, fit_error_inflation
 from so_transients.site.pipeline import PAPER
 
@@ -87,8 +89,9 @@ def cosmic_ray_times(sim_root):
 
 
 def null_positions(data, live, n_null, cfg, seed):
-    """``(centres, ra, dec)``: ``n_null`` random fit positions, as
-    :func:`so_transients.detect.fit.measure_error_scale` draws them."""
+    """``(centres, ra, dec)``: ``n_null`` fit positions drawn uniformly over the observation
+    and its live detectors (as :func:`so_transients.detect.fit.measure_error_scale` draws
+    them where no candidate is to be avoided, from ``seed``)."""
     rng = np.random.default_rng(seed)
     t = data.timestamps
     n_win = samples_in(t, cfg.window)
@@ -98,23 +101,20 @@ def null_positions(data, live, n_null, cfg, seed):
     return centres, ra, dec
 
 
-def null_fit(data, live, centre, ra, dec, cfg):
-    """``(ratio, window)``: the beam amplitude's ``A / sigma_A`` at one null position (with
-    the band's inflation) and what was fitted (detectors, arrays, model, samples used)."""
+def null_window(data, live, centre, ra, dec, cfg):
+    """``(near, window)``: the detectors of ``live`` a fit at (ra, dec) around sample
+    ``centre`` uses, and its arrays as :func:`so_transients.detect.fit.null_ratio` takes
+    them."""
     n_win = samples_in(data.timestamps, cfg.window)
     lo, hi = centre - n_win, centre + n_win + 1
     _, track, near = fit_window(data, ra, dec, lo, hi, live, cfg)
-    arrays = window_arrays(data, track, near, lo, hi)
-    beam, ok = _beam_samples(*arrays)
-    if not ok.any():
-        return np.nan, None
-    a, err = beam.amplitude()
-    return a / (err * data.kernel(live)[1]), (near, arrays, beam, ok)
+    return near, window_arrays(data, track, near, lo, hi)
 
 
-def tail_row(data, aman, centre, z, window, rays, median_sigma):
+def tail_row(data, aman, centre, z, near, window, rays, median_sigma):
     """What one fit in the tail is made of (see the module doc)."""
-    near, (track, xi, eta, amp, sigma), beam, ok = window
+    beam, ok = _beam_samples(*window)
+    amp, sigma = window[3], window[4]
     model = beam.model(np.array([1.0, 0.0, 0.0, 0.0]))
     per_sample = beam.w * model * beam.y / np.sum(beam.w * model * model)
     det_of = np.broadcast_to(np.arange(len(near))[:, None], amp.shape)[ok]
@@ -139,8 +139,9 @@ def realization(kind, seed, folder, args):
     data = FitInputs.from_aman(aman, speed_tolerance=0.1)
     live = np.flatnonzero(~data.dead)
     cfg = FitConfig()
+    inflation_band = float(data.kernel(live)[1])
     centres, ra, dec = null_positions(data, live, args.n_null, cfg, seed)
-    ratios = np.array([null_fit(data, live, c, r, d, cfg)[0]
+    ratios = np.array([null_ratio(null_window(data, live, c, r, d, cfg)[1], inflation_band)
                        for c, r, d in zip(centres, ra, dec)])     # windows not kept: GBs
     good = np.isfinite(ratios)
     scale = clipped_std(ratios[good])
@@ -148,7 +149,7 @@ def realization(kind, seed, folder, args):
     n = int(good.sum())
     inflation = detector_inflation(aman, live)
     row = dict(kind=kind, seed=seed, minutes=args.minutes, n_fits=n, error_scale=scale,
-               inflation_band=float(data.kernel(live)[1]),
+               inflation_band=inflation_band,
                inflation_p5=float(np.percentile(inflation, 5)),
                inflation_p95=float(np.percentile(inflation, 95)))
     for level in LEVELS:
@@ -158,7 +159,7 @@ def realization(kind, seed, folder, args):
     median_sigma = float(np.median(data.sigma_amp[live]))
     tails = [dict(kind=kind, seed=seed,
                   **tail_row(data, aman, centres[k], z[k],
-                             null_fit(data, live, centres[k], ra[k], dec[k], cfg)[1],
+                             *null_window(data, live, centres[k], ra[k], dec[k], cfg),
                              rays, median_sigma))
              for k in np.flatnonzero(good & (np.abs(z) > args.row_level))]
     return row, tails

@@ -405,6 +405,15 @@ def levenberg_marquardt(normal_equations, p0, lower, upper, max_iter=50, tol_chi
     return p, cov, chi2
 
 
+def null_ratio(window, inflation=1.0) -> float:
+    """``A / sigma_A`` (errors inflated by ``inflation``) of the unshifted beam's amplitude fit
+    on ``window`` (``(track, det_xi, det_eta, amp, sigma_amp)``, as :func:`fit_candidate`
+    takes it); NaN when no sample can carry the beam."""
+    beam, ok = _beam_samples(*window)
+    a, err = beam.amplitude() if ok.any() else (np.nan, np.nan)
+    return a / (err * inflation) if np.isfinite(a) else np.nan
+
+
 def null_scatter(windows, inflation=1.0):
     """Robust spread of ``A / sigma_A`` for amplitude fits at fixed (null) positions.
 
@@ -421,12 +430,7 @@ def null_scatter(windows, inflation=1.0):
     (docs/results/drawn_wafers.md); the clipped standard deviation is known to 5 % from 200,
     1.6 % from 2000 (``n_null``).
     """
-    ratios = []
-    for track, det_xi, det_eta, amp, sigma_amp in windows:
-        beam, ok = _beam_samples(track, det_xi, det_eta, amp, sigma_amp)
-        a, err = beam.amplitude() if ok.any() else (np.nan, np.nan)
-        if np.isfinite(a):
-            ratios.append(a / (err * inflation))
+    ratios = [r for r in (null_ratio(w, inflation) for w in windows) if np.isfinite(r)]
     if len(ratios) < 10:
         return 1.0
     return clipped_std(ratios)

@@ -34,7 +34,8 @@ print("OK", sorted(p.name for p in dataset.glob("*.yaml")))
 
 def source_copy(folder) -> Path:
     """What the wheel is built from, copied: pip builds in the source tree (``build/``,
-    ``*.egg-info``), and CI runs this test on two interpreters at once."""
+    ``*.egg-info``), where a checkout's leftovers (files since removed, another
+    interpreter's build running at the same time) would go into the wheel."""
     folder.mkdir()
     for name in ("pyproject.toml", "README.md"):
         shutil.copy(REPO / name, folder / name)

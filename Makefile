@@ -12,6 +12,10 @@ export OMP_WAIT_POLICY ?= passive
 export MALLOC_MMAP_THRESHOLD_ ?= 4294967296
 export MALLOC_TRIM_THRESHOLD_ ?= 17179869184
 export MALLOC_TOP_PAD_ ?= 1073741824
+# numpy asks the kernel for huge pages on every array above 4 MB; with this kernel's
+# `defrag=madvise` each such fault may compact memory first. Off, a pipeline test module
+# spends 3 s in the kernel instead of 17 and runs a quarter faster (docs/results/performance.md).
+export NUMPY_MADVISE_HUGEPAGE ?= 0
 
 .PHONY: demo test test-slow test-fast test-py313 install-py313 lint docs bench bench-site clean install
 
@@ -32,18 +36,20 @@ demo: $(STAMP)
 	$(VENV)/bin/so-transients demo --config configs/sim_demo.yaml --out data/demo
 
 # One worker per core, each running whole test modules (their module-scoped datasets are
-# simulated once); `pytest` alone runs them one at a time.
+# simulated once); `pytest` alone runs them one at a time. One thread per worker: BLAS and
+# OpenMP threads of two workers on two cores only contend.
 XDIST  := -n auto --dist loadfile
+THREADS := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1
 test: $(STAMP)
-	$(PY) -m pytest $(XDIST)
+	$(THREADS) $(PY) -m pytest $(XDIST)
 
 # The end-to-end tests alone.
 test-slow: $(STAMP)
-	$(PY) -m pytest $(XDIST) -m slow
+	$(THREADS) $(PY) -m pytest $(XDIST) -m slow
 
 # The quick subset for development: everything but the end-to-end tests marked `slow`.
 test-fast: $(STAMP)
-	$(PY) -m pytest $(XDIST) -m "not slow"
+	$(THREADS) $(PY) -m pytest $(XDIST) -m "not slow"
 
 # The quick subset again on Python 3.13, the newest interpreter the dependency ranges admit
 # (SO's environments beside sotrplib are 3.12+), in its own environment .venv313.
@@ -53,7 +59,7 @@ install-py313:
 	@.venv313/bin/python -m pip install -qq --disable-pip-version-check -e '.[test,docs]' -c constraints.txt
 
 test-py313: install-py313
-	.venv313/bin/python -m pytest $(XDIST) -m "not slow" -p no:cacheprovider
+	$(THREADS) .venv313/bin/python -m pytest $(XDIST) -m "not slow" -p no:cacheprovider
 
 # ruff, configured in pyproject.toml
 lint: $(STAMP)

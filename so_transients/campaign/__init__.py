@@ -5,7 +5,8 @@ thresholds, flux and pointing recovery, false positives). See :mod:`.run` for th
 campaign folder and :mod:`.flare_injection` for the fast injection path.
 
 - :mod:`.config`, :mod:`.run`, :mod:`.work_units`, :mod:`.noise`: the campaign and its units
-- :mod:`.noise_model`, :mod:`.flare_injection`: the fast injection path; :mod:`.full_check`:
+- :mod:`.noise_model`, :mod:`.pca_response`, :mod:`.flare_injection`: the fast injection path
+  (the filter's noise model, what the PCA takes of a flare, the injection); :mod:`.full_check`:
   the same flares through the full site pipeline
 - :mod:`.search_steps`: the site config's search steps run in-process
 - :mod:`.matching`: detections matched to injected flares

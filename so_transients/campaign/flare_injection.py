@@ -132,6 +132,33 @@ def _stacked_runs(runs, window):
     return [merged] + [r for r, keep in zip(runs, inside) if not keep]
 
 
+def injected_windows(state, track, stack_window, options) -> list:
+    """The flare's signal (``track``: its samples in the group's footprint) as the standard
+    steps leave it, a window per crossing (``stack_window`` s: the crossings stacked together,
+    see the module doc), brightest first: ``(expected S/N, dets, lo, hi, signal)`` with
+    ``signal`` (len(dets), hi - lo) in the data's units, as the detectors record it
+    (:class:`~so_transients.campaign.noise.Response`) less what the PCA takes of it
+    (:mod:`~so_transients.campaign.pca_response`)."""
+    fs = state.model.sample_rate
+    sigma = fwhm_to_sigma(get_band(state.group.band).fwhm)
+    pad = int(round(options.window_pad * fs))
+    runs = [_run_window(state, track, run, pad, options.strip_sigma * sigma)
+            for run in _runs(track.samples)]
+    if stack_window and len(runs) > 1:
+        runs = _stacked_runs(runs, stack_window * fs)
+    windows = []
+    for dets, lo, hi, crossings in runs:
+        signal = np.zeros((len(dets), hi - lo), np.float32)
+        response = state.response
+        add_sources(signal, response.xi[dets], response.eta[dets], crossings, sigma)
+        response.observe(signal, dets, fs)
+        if state.pca is not None:
+            state.pca.apply(signal, dets, fs)
+        windows.append((_expected_snr(signal, state.sigma_amp[dets]), dets, lo, hi, signal))
+    windows.sort(key=lambda w: -w[0])
+    return windows
+
+
 def inject_flare(state, flare, search, options) -> CrossingResult:
     """Inject ``flare`` (a truth-table row) into one prepared group and search each crossing."""
     band = get_band(state.group.band)
@@ -144,19 +171,7 @@ def inject_flare(state, flare, search, options) -> CrossingResult:
     result = CrossingResult(crossing_times(state.timestamps, state.bore_q, state.xi, state.eta,
                                            flare, band.fwhm,
                                            track=(track.samples, track.xi, track.eta)))
-    pad = int(round(options.window_pad * state.model.sample_rate))
-    runs = [_run_window(state, track, run, pad, options.strip_sigma * sigma)
-            for run in _runs(track.samples)]
-    if search.stack_window and len(runs) > 1:
-        runs = _stacked_runs(runs, search.stack_window * state.model.sample_rate)
-    windows = []
-    for dets, lo, hi, crossings in runs:
-        signal = np.zeros((len(dets), hi - lo), np.float32)
-        response = state.response
-        add_sources(signal, response.xi[dets], response.eta[dets], crossings, sigma)
-        response.observe(signal, dets, state.model.sample_rate)
-        windows.append((_expected_snr(signal, state.sigma_amp[dets]), dets, lo, hi, signal))
-    windows.sort(key=lambda w: -w[0])
+    windows = injected_windows(state, track, search.stack_window, options)
     tables = []
     for rank, (expected, dets, lo, hi, signal) in enumerate(windows):
         limit = options.max_crossings is not None and rank >= options.max_crossings

@@ -45,14 +45,19 @@ from so_transients.preprocess.sotodlib_steps import sotodlib_name
 from so_transients.detect.find import FindConfig
 from so_transients.detect.fit import FitConfig, FitInputs, measure_error_scale
 from so_transients.campaign.noise_model import NoiseModel
+from so_transients.campaign.pca_response import PcaResponse, model_signal_filter
 from so_transients.common.pointing import BORE_Q, boresight_q
 from so_transients.sim.imperfections import respond_to_sky
 from so_transients.sim.simulate import planned_detsets, simulate
 from so_transients.campaign.search_steps import SEARCH_STEPS, SearchSteps, step_settings
 
 log = logging.getLogger(__name__)
+#: ``info.json``'s ``format``: a group prepared in another format is prepared again (2: the
+#: PCA's weights and mask limits are kept for the fast path, :mod:`.pca_response`)
+PREPARED_FORMAT = 2
 KEEP_FIELDS = ("timestamps", "boresight", "focal_plane", "det_info", "obs_info", "flags",
-               "transient_filter", BORE_Q, "iir_params")
+               "transient_filter", BORE_Q, "iir_params", "transient_pca_filter",
+               "transient_pca_mask")
 
 
 @dataclass(frozen=True)
@@ -137,9 +142,10 @@ def prepare_group(context, group: Group, standard_steps, search_steps, folder):
     aman.save(str(folder / "state.h5"), overwrite=True)
     _save_response(context, aman, folder)
     noise_rms = float(np.median(np.asarray(aman.transient_filter.noise_level)[live]))
-    info = dict(error_scale=float(scale), duration=duration, n_dets=int(aman.dets.count),
-                noise_rms=noise_rms,
-                tau_deconvolved=deconvolves_time_constants(standard_steps))
+    info = dict(format=PREPARED_FORMAT, error_scale=float(scale), duration=duration,
+                n_dets=int(aman.dets.count), noise_rms=noise_rms,
+                tau_deconvolved=deconvolves_time_constants(standard_steps),
+                pca_lowpass=model_signal_filter(standard_steps)[1])
     (folder / "info.json").write_text(json.dumps(info, indent=1))
     return info
 
@@ -254,6 +260,7 @@ class GroupState:
     sigma_amp: np.ndarray
     search_steps: list         # the config entries of the search steps to run
     response: Response = None  # how the detectors see an injected source
+    pca: PcaResponse = None    # what the standard steps' PCA takes of it (None: no PCA)
 
     @classmethod
     def load(cls, group: Group, folder, search_steps):
@@ -261,13 +268,17 @@ class GroupState:
         aman = core.AxisManager.load(str(folder / "state.h5"))
         info = group_info(folder)
         model = NoiseModel.from_aman(aman)
+        pca = PcaResponse.from_aman(aman, info.get("pca_lowpass"))
+        for name in ("transient_pca_filter", "transient_pca_mask"):
+            if name in aman._fields:       # the search never reads them
+                aman.move(name, None)
         _slim(aman)
         xi, eta = np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta)
         return cls(group, aman, _read_ahead(np.load(folder / "snr.npy", mmap_mode="r")),
                    model, info["error_scale"],
                    np.asarray(aman.timestamps), np.asarray(aman[BORE_Q]), xi, eta,
                    np.asarray(aman.transient_filter.sigma_amp), search_steps,
-                   Response.load(folder, xi, eta, info))
+                   Response.load(folder, xi, eta, info), pca)
 
     @property
     def footprint(self):

@@ -38,15 +38,21 @@ class NoiseModel:
     sigma_t: np.ndarray          # (ndet,) template width, s
     snr_factor: np.ndarray       # (ndet,) S/N per unit filter output
     order: int = 4
+    #: rows whose own source would bias their PSD by more than this (S/N^2 / n_eff) are
+    #: filtered again with a PSD estimated without it (the filter's ``bright_bias``)
+    bright_bias: float = np.inf
     _responses: dict = field(default_factory=dict, repr=False, compare=False)
+    _n_eff: np.ndarray = field(default=None, repr=False, compare=False)
 
     @classmethod
-    def from_filter(cls, result: FilterResult, sample_rate, sigma_t, order=4):
+    def from_filter(cls, result: FilterResult, sample_rate, sigma_t, order=4,
+                    bright_bias=None):
         ndet = len(result.snr_factor)
         return cls(float(sample_rate), int(result.nfft), np.asarray(result.psd_edges),
                    np.asarray(result.psd_bins, float), np.asarray(result.fknee, float),
                    np.broadcast_to(np.asarray(sigma_t, float), (ndet,)).copy(),
-                   np.asarray(result.snr_factor, float), order)
+                   np.asarray(result.snr_factor, float), order,
+                   np.inf if bright_bias is None else float(bright_bias))
 
     @classmethod
     def from_aman(cls, aman):
@@ -58,33 +64,73 @@ class NoiseModel:
         return cls(sample_rate(aman.timestamps, "NoiseModel:"), int(summary.nfft),
                    np.asarray(summary.psd_edges), np.asarray(summary.psd_bins, float),
                    np.asarray(summary.fknee, float), np.asarray(summary.sigma_t, float),
-                   np.asarray(summary.snr_factor, float), int(summary.order))
+                   np.asarray(summary.snr_factor, float), int(summary.order),
+                   float(summary.bright_bias) if "bright_bias" in summary._fields else np.inf)
+
+    def _bins(self, freqs):
+        """The PSD bin of each frequency (Hz)."""
+        index = np.rint(freqs * self.nfft / self.sample_rate).astype(int)
+        return np.clip(np.searchsorted(self.edges, index, side="right") - 1,
+                       0, self.psd_bins.shape[1] - 1)
+
+    def _template(self, dets, freqs):
+        sigma = self.sigma_t[dets][:, None]
+        return (self.sample_rate * sigma * np.sqrt(2 * np.pi)
+                * np.exp(-2 * (np.pi * freqs[None, :] * sigma) ** 2))
 
     def gain(self, dets, freqs):
         """Filter response (dets, nf) at ``freqs`` (Hz): high-pass x template / PSD."""
-        index = np.rint(freqs * self.nfft / self.sample_rate).astype(int)
-        bins = np.clip(np.searchsorted(self.edges, index, side="right") - 1,
-                       0, self.psd_bins.shape[1] - 1)
-        sigma = self.sigma_t[dets][:, None]
-        template = (self.sample_rate * sigma * np.sqrt(2 * np.pi)
-                    * np.exp(-2 * (np.pi * freqs[None, :] * sigma) ** 2))
         hp = butterworth_highpass(freqs, self.fknee[dets], self.order)
-        psd = self.psd_bins[dets][:, bins]
+        psd = self.psd_bins[dets][:, self._bins(freqs)]
         with np.errstate(divide="ignore", invalid="ignore"):
-            out = np.where(psd > 0, hp * template / psd, 0.0)   # dead detectors: no response
+            out = np.where(psd > 0, hp * self._template(dets, freqs) / psd, 0.0)   # dead: 0
         out[:, freqs == 0] = 0.0
         return out
 
+    def own_psd_loss(self, freqs):
+        """The share of a source's filtered signal, per frequency (Hz), that a PSD estimated
+        from data holding it takes back on average: each bin's PSD is the mean of its ``m``
+        frequencies' power, whose cross term with the noise, ``2 Re(N S*) / m``, is linear in
+        the source, and weighting by its inverse takes ``1/m`` of each of its frequencies'
+        response (1.7 % of a crossing's S/N in 4 minutes of f090 data; less in longer data,
+        whose bins hold more frequencies)."""
+        counts = np.diff(self.edges).astype(float)
+        return 1.0 / counts[self._bins(freqs)]
 
-    def snr_response(self, n):
+    @property
+    def n_eff(self):
+        """(ndet,) the effective number of frequencies each detector's filter uses, as the
+        filter computes it (``(sum c_f)^2 / sum c_f^2``, ``c_f`` each frequency's share of the
+        S/N^2); inf for dead detectors."""
+        if self._n_eff is None:
+            freqs = scipy.fft.rfftfreq(self.nfft, 1.0 / self.sample_rate)
+            weight = np.full(len(freqs), 2.0)
+            weight[0] = 1.0
+            if self.nfft % 2 == 0:
+                weight[-1] = 1.0
+            out = np.full(len(self.fknee), np.inf)
+            for start in range(0, len(out), 32):
+                dets = np.arange(start, min(start + 32, len(out)))
+                share = weight * self.gain(dets, freqs) * self._template(dets, freqs)
+                total, squares = share.sum(axis=1), (share**2).sum(axis=1)
+                ok = squares > 0
+                out[dets[ok]] = total[ok] ** 2 / squares[ok]
+            self._n_eff = out
+        return self._n_eff
+
+    def snr_response(self, n, own_psd=True):
         """S/N per unit input in Fourier space, (ndet, n // 2 + 1), for real FFTs of length
-        ``n``: the gain times each detector's S/N factor. Cached per ``n``."""
-        if n not in self._responses:
+        ``n``: the gain times each detector's S/N factor, less with ``own_psd`` what the PSD
+        estimated from data holding the source takes (:meth:`own_psd_loss`). Cached."""
+        key = (n, bool(own_psd))
+        if key not in self._responses:
             freqs = scipy.fft.rfftfreq(n, 1.0 / self.sample_rate)
             every = np.arange(len(self.fknee))
-            self._responses[n] = (self.gain(every, freqs)
-                                  * self.snr_factor[:, None]).astype(np.float32)
-        return self._responses[n]
+            response = self.gain(every, freqs) * self.snr_factor[:, None]
+            if own_psd:
+                response *= 1.0 - self.own_psd_loss(freqs)
+            self._responses[key] = response.astype(np.float32)
+        return self._responses[key]
 
 
 def fft_length(n):
@@ -96,11 +142,22 @@ def fft_length(n):
 def filtered_snr(model: NoiseModel, dets, signal, pad=10.0):
     """S/N timestream (len(dets), m) that the noise model's filter makes of ``signal``
     (len(dets), m), a window of injected signal only, zero-padded by at least ``pad`` seconds
-    on each side (FFT lengths are 2^k or 3 x 2^k, so that few responses need computing)."""
+    on each side (FFT lengths are 2^k or 3 x 2^k, so that few responses need computing).
+
+    As the filter weighs it: with each detector's PSD estimated from the data holding the
+    signal (:meth:`NoiseModel.own_psd_loss`), except on detectors where the signal is bright
+    enough (its S/N^2 / n_eff above ``bright_bias``) for the filter's second pass, whose PSD
+    leaves the source out."""
     signal = np.asarray(signal, np.float32)
     dets = np.asarray(dets, int)
     m = signal.shape[1]
     n = fft_length(m + 2 * int(np.ceil(pad * model.sample_rate)))
     spec = scipy.fft.rfft(signal, n=n, axis=1)
-    spec *= model.snr_response(n)[dets]
-    return scipy.fft.irfft(spec, n=n, axis=1)[:, :m]
+    out = scipy.fft.irfft(spec * model.snr_response(n)[dets], n=n, axis=1)[:, :m]
+    if np.isfinite(model.bright_bias) and len(dets):
+        peak = np.abs(out).max(axis=1)
+        bright = np.flatnonzero(peak**2 / model.n_eff[dets] > model.bright_bias)
+        if len(bright):
+            again = spec[bright] * model.snr_response(n, own_psd=False)[dets[bright]]
+            out[bright] = scipy.fft.irfft(again, n=n, axis=1)[:, :m]
+    return out

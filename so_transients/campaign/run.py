@@ -31,7 +31,8 @@ from so_transients.campaign.config import CampaignConfig, Cell
 from so_transients.campaign.far_budget import background_done, search_background
 from so_transients.campaign.full_check import run_full_check
 from so_transients.campaign.noise import (
-    campaign_groups, false_positives_done, prepare_group, search_false_positives, simulate_group
+    PREPARED_FORMAT, campaign_groups, false_positives_done, prepare_group, search_false_positives,
+    simulate_group
 )
 from so_transients.campaign.report import write_results
 from so_transients.campaign.work_units import run_unit, unit_done, unit_paths
@@ -103,7 +104,9 @@ def prepare_noise(cfg, out: Path, progress=True, pool=None):
 
 def _prepared(folder: Path, stamp) -> bool:
     digest = folder / "digest.txt"
-    return (folder / "info.json").exists() and digest.exists() and digest.read_text() == stamp
+    info = folder / "info.json"
+    return (info.exists() and digest.exists() and digest.read_text() == stamp
+            and json.loads(info.read_text()).get("format") == PREPARED_FORMAT)
 
 
 class NoiseSimulations:

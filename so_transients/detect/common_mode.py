@@ -73,18 +73,21 @@ def mask_excursions(rows, sample_rate, cfg: ExcursionConfig = ExcursionConfig(),
     """Replace, in place, each row's brief excursions beyond its baseline (its share of the
     common mode plus a running median of the rest over ``window``) by the baseline: samples
     beyond ``threshold`` times the row's robust spread about it, and ``buffer`` seconds around
-    them. ``rows``: (rows, nsamp), finite. Returns the samples replaced per row."""
+    them. ``rows``: (rows, nsamp), finite. Returns ``(counts, limits)``: the samples replaced
+    per row, and each row's limit (``threshold`` times its spread, in the rows' units; inf
+    where nothing could be replaced), beyond which an excursion is hidden."""
     nrows, nsamp = rows.shape
     counts = np.zeros(nrows, int)
+    limits = np.full(nrows, np.inf)
     n_block = max(1, int(round(cfg.block * sample_rate))) | 1
     k = max(3, int(round(cfg.window / cfg.block))) | 1
     n = nsamp // n_block
     if n < k or not nrows:
-        return counts
+        return counts, limits
     m = block_medians(rows, n_block, cfg.chunk_dets)
     live = np.ptp(m, axis=1) > 0 if live is None else np.asarray(live, bool)
     if not live.any():
-        return counts
+        return counts, limits
     common, gain = common_share(m, live)
     rest = median_last(sliding_window_view(m - gain[:, None] * common, k, axis=1))
     half = k // 2
@@ -98,8 +101,9 @@ def mask_excursions(rows, sample_rate, cfg: ExcursionConfig = ExcursionConfig(),
             sub, t_rest, rest[r]).astype(np.float32)))
         if spread > 0:
             _baseline(gain[r], common_s, t_rest, rest[r], base)
-            counts[r] = _replace_excursions(rows[r], base, cfg.threshold * spread, grow)
-    return counts
+            limits[r] = cfg.threshold * spread
+            counts[r] = _replace_excursions(rows[r], base, limits[r], grow)
+    return counts, limits
 
 
 @njit(cache=True, nogil=True)

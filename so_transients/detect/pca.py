@@ -49,12 +49,23 @@ def covariance(model, rows, block):
     return cov / max(nsamp - 1, 1)
 
 
-def pca_filter(signal, model, n_modes, block=8192):
+@dataclass
+class PcaModes:
+    """What :func:`pca_filter` subtracted: ``weights`` (dets, n_modes) is ``R``, each
+    detector's weight on the modes (zero for the detectors ``left_out``), so that a signal
+    added to the data before the step loses ``R (R^T model)`` of it, where ``model`` is its
+    part of the model signal (:mod:`so_transients.campaign.pca_response`)."""
+
+    left_out: np.ndarray      # (dets,) bool: model not finite everywhere, not cleaned
+    weights: np.ndarray       # (dets, n_modes) float64
+
+
+def pca_filter(signal, model, n_modes, block=8192) -> PcaModes:
     """Subtract from ``signal`` (dets, samps; in place) its share of the ``n_modes`` strongest
     principal components of ``model`` (the same shape; ``signal`` itself, or a low-passed
     copy), as sotodlib's ``pca_filter`` step does: ``signal -= R (R^T model)`` with ``R`` the
-    covariance's leading eigenvectors. Returns the detectors left out (bool, (dets,)): those
-    whose model is not finite everywhere."""
+    covariance's leading eigenvectors. Returns ``R`` and the detectors left out: those whose
+    model is not finite everywhere."""
     ndet, nsamp = model.shape
     left_out = ~np.isfinite(model).all(axis=1)
     rows = np.flatnonzero(~left_out)
@@ -75,4 +86,6 @@ def pca_filter(signal, model, n_modes, block=8192):
             signal[:, start:stop] -= lead @ modes
         else:
             signal[rows, start:stop] -= lead @ modes
-    return left_out
+    weights = np.zeros((ndet, n_modes))
+    weights[rows] = lead
+    return PcaModes(left_out, weights)

@@ -216,8 +216,10 @@ class TransientPcaMask(_Preprocess):
 
     A bright crossing in the model signal can become part of a PCA mode, or bias a detector's
     weight on the modes, and ``pca_filter`` then subtracts part of the source from the signal
-    itself. ``aman.signal`` is not touched. ``aman.transient_pca_masked`` counts the samples
-    replaced per detector: :func:`so_transients.detect.common_mode.mask_excursions`.
+    itself. ``aman.signal`` is not touched. ``aman.transient_pca_mask`` holds, per detector,
+    the samples replaced (``masked``) and the excursion beyond which a sample is (``limit``, in
+    the model signal's units), and the ``buffer`` (s) masked around each:
+    :func:`so_transients.detect.common_mode.mask_excursions`.
 
     Config block (after the low-pass ``fourier_filter``, before ``pca_filter``)::
 
@@ -240,19 +242,24 @@ class TransientPcaMask(_Preprocess):
         where = f"{self.name}: {GroupName(aman)}"
         require(aman, self.name, [self.cfg.signal])
         counts = np.zeros(aman.dets.count, int)
+        limits = np.full(aman.dets.count, np.inf)
         if aman.dets.count and aman.samps.count:
             model = aman[self.cfg.signal]
             fs = scan_geometry.sample_rate(aman.timestamps, where)
             rows = np.flatnonzero(np.isfinite(model).all(axis=1))
             if len(rows) == aman.dets.count:
-                counts = mask_excursions(model, fs, self.cfg)
+                counts, limits = mask_excursions(model, fs, self.cfg)
             elif len(rows):
                 part = model[rows]
-                counts[rows] = mask_excursions(part, fs, self.cfg)
+                counts[rows], limits[rows] = mask_excursions(part, fs, self.cfg)
                 model[rows] = part
             log.info("%s: %d samples of %d detectors hidden from the PCA", where,
                      counts.sum(), np.count_nonzero(counts))
-        _replace(aman, "transient_pca_masked", counts, [(0, "dets")])
+        mask = core.AxisManager(aman.dets)
+        mask.wrap("masked", counts, [(0, "dets")])
+        mask.wrap("limit", limits, [(0, "dets")])
+        mask.wrap("buffer", float(self.cfg.buffer))
+        _replace(aman, self.name, mask)
         return aman, proc_aman
 
 
@@ -266,7 +273,7 @@ class TransientFilter(_Preprocess):
     ``sigma_amp``, ``snr_scale``, ``dead``, ``sigma_t``, ``beam_sigma``, ``fit_inflation``, the
     filter's response to a crossing (``lag``; ``response`` per detector, from its band's
     median noise) used by ``transient_fit``, and its noise
-    weighting (``psd_bins``, ``psd_edges``, ``snr_factor``, ``nfft``, ``order``) from which
+    weighting (``psd_bins``, ``psd_edges``, ``snr_factor``, ``nfft``, ``order``, ``bright_bias``) from which
     :meth:`so_transients.campaign.noise_model.NoiseModel.from_aman` filters injected signals. The later
     steps read each detector's band and beam from here: they are configured once, in this
     step. The amplitude timestream (signal units, mJy for point-source-calibrated data) is
@@ -372,6 +379,8 @@ class TransientFilter(_Preprocess):
             out.wrap("snr_factor", np.asarray(res.snr_factor), [(0, "dets")])
             out.wrap("nfft", int(res.nfft))
             out.wrap("order", int(self.cfg.order))
+            out.wrap("bright_bias", np.inf if self.cfg.bright_bias is None
+                     else float(self.cfg.bright_bias))
         return out
 
     def calc_and_save(self, aman, proc_aman):

@@ -32,7 +32,7 @@ from sotodlib.preprocess.processes import FourierFilter, GlitchDetection, _Prepr
 
 from so_transients.detect.pca import PcaConfig, pca_filter
 from so_transients.common.step_config import ChunkConfig, ConfigError, from_yaml
-from so_transients.preprocess.processes import _register
+from so_transients.preprocess.processes import _register, _replace
 from so_transients.preprocess.step_fields import GroupName, StepSpec, has_field, require
 
 log = logging.getLogger(__name__)
@@ -100,7 +100,10 @@ class TransientPcaFilter(_Preprocess):
     wafer-band this lowers the site pipeline's peak memory by the 5.4 GB ``np.cov`` makes and
     halves the step's time (docs/results/performance.md). Detectors whose model signal is not
     finite everywhere are left out and not cleaned, with a warning naming the group
-    (sotodlib's step spreads one NaN to every detector).
+    (sotodlib's step spreads one NaN to every detector). ``aman.transient_pca_filter`` keeps
+    what was subtracted: ``weights`` (dets, pca_modes), each detector's weight on the modes
+    (zero where ``left_out``), from which an injection recovery models the step
+    (:mod:`so_transients.campaign.pca_response`).
 
     Config block (in place of ``pca_filter``)::
 
@@ -128,9 +131,14 @@ class TransientPcaFilter(_Preprocess):
         signal = aman[self.signal]
         model = aman[self.model_signal] if self.model_signal else signal
         try:
-            left_out = pca_filter(signal, model, self.cfg.n_modes, self.cfg.block)
+            result = pca_filter(signal, model, self.cfg.n_modes, self.cfg.block)
         except ValueError as exc:
             raise ValueError(f"{where}: {exc}") from None
+        modes = core.AxisManager(aman.dets, core.IndexAxis("pca_modes", self.cfg.n_modes))
+        modes.wrap("weights", result.weights, [(0, "dets"), (1, "pca_modes")])
+        modes.wrap("left_out", result.left_out, [(0, "dets")])
+        _replace(aman, self.name, modes)
+        left_out = result.left_out
         if left_out.any():
             log.warning("%s: %d of %d detectors have a model signal (%s) that is not finite "
                         "everywhere: left out of the PCA and not cleaned", where,
@@ -195,7 +203,8 @@ class TransientFourierFilter(FourierFilter):
                                   f"sotodlib.tod_ops.filters")
         self.trim_samps = cfg.get("trim_samps")
 
-    def _filter(self):
+    def filter_chain(self):
+        """The configured filters as one sotodlib ``FilterChain``."""
         filters = []
         for spec in self.filter_specs:
             params = tod_ops.fft_ops.build_filt_params_dict(
@@ -208,7 +217,7 @@ class TransientFourierFilter(FourierFilter):
             raise NotImplementedError("No support for using data AxisManager in process")
         where = f"{self.name}: {GroupName(aman)}"
         require(aman, self.name, [self.signal_name])
-        filt = self._filter()
+        filt = self.filter_chain()
         fields = list(dict.fromkeys([self.signal_name] + [
             path for spec in self.filter_specs
             for path in _field_paths(aman, spec["name"], spec.get("filter_params"))]))

@@ -55,6 +55,16 @@ def test_the_paired_full_checks_on_the_table2_page_are_their_tables():
                                         "(2026-12-06, commit `470dd1d`)"), separate)
     assert (np.asarray(separate["mcnemar_p"]) > 0.05).all()
     assert re.search(r"every p > 0\.05", text)
+    modelled = Table.read(RESULTS / "data" / "full_check_pca_model.ecsv")
+    assert_check_rows_are(markdown_rows(page, CHECK_HEADER, after="### The paired check with "
+                                        "the PCA modelled (2026-12-06, commit `04aa065`)"),
+                          modelled)
+    fast_only, full_only = int(modelled["fast_only"].sum()), int(modelled["full_only"].sum())
+    before = int(separate["fast_only"].sum()), int(separate["full_only"].sum())
+    assert (f"disagree on {fast_only + full_only} of {int(modelled['n'].sum())} flares "
+            f"({fast_only} found by the fast path alone, {full_only} by the full pipeline "
+            f"alone), where they disagreed on {sum(before)} ({before[0]} and {before[1]})"
+            ) in " ".join(text.split())
     campaign = Table.read(TABLE2 / "full_check.ecsv")
     assert_check_rows_are(markdown_rows(page, CHECK_HEADER, after="## Full site pipeline"), campaign)
     differing = [str(r["band"]) for r in campaign if r["mcnemar_p"] <= 0.05]

@@ -22,7 +22,7 @@ config (:func:`model_signal_filter`).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.fft
@@ -66,6 +66,7 @@ class PcaResponse:
     limit: np.ndarray          # (dets,) the mask's limit in the model signal; inf: unmasked
     buffer: float              # s masked around an excursion
     lowpass: dict | None       # the config entry of the model signal's Fourier filter
+    _chain: object = field(default=None, init=False, repr=False, compare=False)
 
     @classmethod
     def from_aman(cls, aman, lowpass):
@@ -81,6 +82,12 @@ class PcaResponse:
         return cls(np.asarray(aman.transient_pca_filter.weights, float), limit, buffer,
                    lowpass)
 
+    def _lowpass_chain(self):
+        """The model signal's filters as one sotodlib ``FilterChain``, built once."""
+        if self._chain is None:
+            self._chain = TransientFourierFilter(self.lowpass).filter_chain()
+        return self._chain
+
     def model_signal(self, signal, sample_rate):
         """``signal`` (dets, m) low-passed as the model signal's filter does (a copy)."""
         if self.lowpass is None:
@@ -89,7 +96,7 @@ class PcaResponse:
         n = fft_length(m + 2 * int(np.ceil(LOWPASS_PAD * sample_rate)))
         spec = scipy.fft.rfft(signal, n=n, axis=1)
         freqs = scipy.fft.rfftfreq(n, 1.0 / sample_rate)
-        TransientFourierFilter(self.lowpass).filter_chain().apply(freqs, None, spec)
+        self._lowpass_chain().apply(freqs, None, spec)
         return scipy.fft.irfft(spec, n=n, axis=1)[:, :m]
 
     def apply(self, signal, dets, sample_rate):

@@ -53,8 +53,9 @@ from so_transients.campaign.search_steps import SEARCH_STEPS, SearchSteps, step_
 
 log = logging.getLogger(__name__)
 #: ``info.json``'s ``format``: a group prepared in another format is prepared again (2: the
-#: PCA's weights and mask limits are kept for the fast path, :mod:`.pca_response`)
-PREPARED_FORMAT = 2
+#: PCA's weights and mask limits are kept for the fast path, :mod:`.pca_response`; 3: the
+#: filter's own ``n_eff`` per detector)
+PREPARED_FORMAT = 3
 KEEP_FIELDS = ("timestamps", "boresight", "focal_plane", "det_info", "obs_info", "flags",
                "transient_filter", BORE_Q, "iir_params", "transient_pca_filter",
                "transient_pca_mask")

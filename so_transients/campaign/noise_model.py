@@ -37,12 +37,14 @@ class NoiseModel:
     fknee: np.ndarray            # (ndet,) high-pass frequency
     sigma_t: np.ndarray          # (ndet,) template width, s
     snr_factor: np.ndarray       # (ndet,) S/N per unit filter output
+    #: (ndet,) the effective number of frequencies each detector's filter used, as the
+    #: filter computed it (``FilterResult.n_eff``; NaN for dead detectors)
+    n_eff: np.ndarray
     order: int = 4
     #: rows whose own source would bias their PSD by more than this (S/N^2 / n_eff) are
     #: filtered again with a PSD estimated without it (the filter's ``bright_bias``)
     bright_bias: float = np.inf
     _responses: dict = field(default_factory=dict, repr=False, compare=False)
-    _n_eff: np.ndarray = field(default=None, repr=False, compare=False)
 
     @classmethod
     def from_filter(cls, result: FilterResult, sample_rate, sigma_t, order=4,
@@ -51,20 +53,22 @@ class NoiseModel:
         return cls(float(sample_rate), int(result.nfft), np.asarray(result.psd_edges),
                    np.asarray(result.psd_bins, float), np.asarray(result.fknee, float),
                    np.broadcast_to(np.asarray(sigma_t, float), (ndet,)).copy(),
-                   np.asarray(result.snr_factor, float), order,
+                   np.asarray(result.snr_factor, float), np.asarray(result.n_eff, float), order,
                    np.inf if bright_bias is None else float(bright_bias))
 
     @classmethod
     def from_aman(cls, aman):
         """The noise model ``transient_filter`` left in ``aman.transient_filter``."""
         summary = aman.transient_filter
-        if "psd_bins" not in summary._fields:
-            raise ValueError("aman.transient_filter holds no noise model (psd_bins): run "
-                             "transient_filter's process() on this aman first")
+        missing = [k for k in ("psd_bins", "n_eff") if k not in summary._fields]
+        if missing:
+            raise ValueError(f"aman.transient_filter holds no noise model ({', '.join(missing)}):"
+                             " run transient_filter's process() on this aman first")
         return cls(sample_rate(aman.timestamps, "NoiseModel:"), int(summary.nfft),
                    np.asarray(summary.psd_edges), np.asarray(summary.psd_bins, float),
                    np.asarray(summary.fknee, float), np.asarray(summary.sigma_t, float),
-                   np.asarray(summary.snr_factor, float), int(summary.order),
+                   np.asarray(summary.snr_factor, float), np.asarray(summary.n_eff, float),
+                   int(summary.order),
                    float(summary.bright_bias) if "bright_bias" in summary._fields else np.inf)
 
     def _bins(self, freqs):
@@ -96,27 +100,6 @@ class NoiseModel:
         whose bins hold more frequencies)."""
         counts = np.diff(self.edges).astype(float)
         return 1.0 / counts[self._bins(freqs)]
-
-    @property
-    def n_eff(self):
-        """(ndet,) the effective number of frequencies each detector's filter uses, as the
-        filter computes it (``(sum c_f)^2 / sum c_f^2``, ``c_f`` each frequency's share of the
-        S/N^2); inf for dead detectors."""
-        if self._n_eff is None:
-            freqs = scipy.fft.rfftfreq(self.nfft, 1.0 / self.sample_rate)
-            weight = np.full(len(freqs), 2.0)
-            weight[0] = 1.0
-            if self.nfft % 2 == 0:
-                weight[-1] = 1.0
-            out = np.full(len(self.fknee), np.inf)
-            for start in range(0, len(out), 32):
-                dets = np.arange(start, min(start + 32, len(out)))
-                share = weight * self.gain(dets, freqs) * self._template(dets, freqs)
-                total, squares = share.sum(axis=1), (share**2).sum(axis=1)
-                ok = squares > 0
-                out[dets[ok]] = total[ok] ** 2 / squares[ok]
-            self._n_eff = out
-        return self._n_eff
 
     def snr_response(self, n, own_psd=True):
         """S/N per unit input in Fourier space, (ndet, n // 2 + 1), for real FFTs of length

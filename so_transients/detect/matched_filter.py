@@ -202,6 +202,9 @@ class FilterResult:
     masked_fraction: np.ndarray = field(default=None)  # of each detector's samples not finite,
     #                                                    masked, or within mask_buffer of those
     n_jumps: np.ndarray = field(default=None)      # readout jumps removed from each detector
+    n_eff: np.ndarray = field(default=None)        # effective number of frequencies each row's
+    #                       first pass used (:meth:`_Spectral.apply`), which decides its second
+    #                       pass (S/N^2 / n_eff above ``bright_bias``); NaN for dead detectors
 
     @property
     def valid(self):
@@ -405,6 +408,7 @@ class _Chunk:
     psd: np.ndarray
     masked_fraction: np.ndarray
     n_jumps: np.ndarray
+    n_eff: np.ndarray
 
 
 def _prepare(sp, signal_rows, mask_rows, buffer):
@@ -511,14 +515,16 @@ def _filter_chunk(sp, signal, mask, sigma_t, sl, out_snr):
                                 rows_spec, ws["y"][:n],
                                 source_free=(ws["weighted"][:n], ws["x2"][:n]))
         for key, value in again.items():
-            res[key][bright] = value
+            if key != "n_eff":         # kept as the first pass measured it: what decided
+                res[key][bright] = value
     dead = res["dead"]
     return _Chunk(sl, res["fknee"], res["snr_factor"], res["psd"].astype(np.float32),
                   res["sigma_amp"], np.where(dead, np.nan, res["scale"]),
                   np.where(dead, 0.0, np.sqrt(res["white"] / sp.nsamp)), dead,
                   res["psd"][~dead],
                   np.array([bad_rows[i][:sp.nsamp].mean() if i in bad_rows else 0.0
-                            for i in range(len(dead))]), n_jumps)
+                            for i in range(len(dead))]), n_jumps,
+                  np.where(dead, np.nan, res["n_eff"]))
 
 
 #: Why a detector is not used, as ``FilterResult.excluded`` (and the archive) codes it
@@ -571,6 +577,7 @@ def _exclude(result: FilterResult, rows):
     result.sigma_amp[rows] = 0.0
     result.snr_factor[rows] = 0.0
     result.snr_scale[rows] = np.nan
+    result.n_eff[rows] = np.nan
 
 
 def matched_filter(signal, sample_rate, sigma_t, cfg: FilterConfig = FilterConfig(),
@@ -607,7 +614,7 @@ def matched_filter(signal, sample_rate, sigma_t, cfg: FilterConfig = FilterConfi
                           psd_bins=gather("psd_all"), psd_edges=sp.edges,
                           snr_factor=gather("snr_factor"),
                           masked_fraction=gather("masked_fraction"),
-                          n_jumps=gather("n_jumps").astype(int))
+                          n_jumps=gather("n_jumps").astype(int), n_eff=gather("n_eff"))
     groups = np.zeros(ndet, int) if groups is None else np.asarray(groups)
     first_dead = result.dead.copy()
     reason = noise_outliers(result.noise_level, result.sigma_amp, first_dead, groups, cfg)

@@ -273,7 +273,8 @@ class TransientFilter(_Preprocess):
     ``sigma_amp``, ``snr_scale``, ``dead``, ``sigma_t``, ``beam_sigma``, ``fit_inflation``, the
     filter's response to a crossing (``lag``; ``response`` per detector, from its band's
     median noise) used by ``transient_fit``, and its noise
-    weighting (``psd_bins``, ``psd_edges``, ``snr_factor``, ``nfft``, ``order``, ``bright_bias``) from which
+    weighting (``psd_bins``, ``psd_edges``, ``snr_factor``, ``n_eff``, ``nfft``, ``order``,
+    ``bright_bias``) from which
     :meth:`so_transients.campaign.noise_model.NoiseModel.from_aman` filters injected signals. The later
     steps read each detector's band and beam from here: they are configured once, in this
     step. The amplitude timestream (signal units, mJy for point-source-calibrated data) is
@@ -366,7 +367,7 @@ class TransientFilter(_Preprocess):
                                   sigma_amp=res.sigma_amp, snr_scale=res.snr_scale,
                                   dead=res.dead, sigma_t=sigma_t, beam_sigma=beam_sigma,
                                   fit_inflation=inflation, bandpass=bands,
-                                  excluded=res.excluded, n_jumps=res.n_jumps,
+                                  excluded=res.excluded, n_jumps=res.n_jumps, n_eff=res.n_eff,
                                   masked_fraction=res.masked_fraction.astype(np.float32)))
         out.add_axis(core.IndexAxis(LAG_AXIS, len(lags)))
         out.wrap("lag", lags, [(0, LAG_AXIS)])

@@ -20,7 +20,9 @@ neighbouring detectors, so the data's spread is wider than the slides'. Prints t
 comparison and both spreads; then gives every data maximum its ``far`` as the step gives a
 candidate's (the higher of the slides' and the inverted data's rate, the latter with its tail
 model beyond ``tail_from``) and checks the calibration: the number of data maxima with
-``far <= x`` should be ``x`` times the data's live time. Optionally plots both.
+``far <= x`` should be ``x`` times the data's live time. Optionally plots both, and with
+``--out DIR`` writes both comparisons as ``levels.ecsv`` and ``calibration.ecsv`` there (each
+naming its command, commit and date; the spreads and live times in their metadata).
 """
 import argparse
 import logging
@@ -28,6 +30,7 @@ import os
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 
@@ -37,6 +40,9 @@ from sotodlib import core  # noqa: E402
 from sotodlib.preprocess import Pipeline  # noqa: E402
 
 import so_transients  # noqa: E402,F401  registers the steps and the loader
+from astropy.table import Table  # noqa: E402
+
+from so_transients.campaign.provenance import commit, today  # noqa: E402
 from so_transients.coherent.config import CoherentConfig  # noqa: E402
 from so_transients.common import pointing  # noqa: E402
 from so_transients.coherent.statistic import (
@@ -146,6 +152,8 @@ def main(argv=None):
     parser.add_argument("--no-glitches", action="store_true",
                         help="simulate without glitches (the failing-test tail's cause)")
     parser.add_argument("--plot", metavar="PNG")
+    parser.add_argument("--out", type=Path, metavar="DIR",
+                        help="write levels.ecsv and calibration.ecsv here")
     args = parser.parse_args(argv)
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
@@ -200,7 +208,29 @@ def main(argv=None):
     if args.plot:
         calibration_plot(args.plot, args, levels, observed, inverted, expected, combined,
                          far_x, n_below, live_data)
+    if args.out:
+        meta = dict(data_scale=data_scale, slide_scale=scale, live_data_hours=live_data,
+                    live_background_hours=live_bg, comments=[
+                        "python studies/far_calibration.py " + " ".join(sys.argv[1:] if argv
+                                                                       is None else argv),
+                        f"commit {commit()}, {today()}; the shipped standard steps of "
+                        "configs/preprocess_paper.yaml and transient_filter"])
+        write_tables(args.out, meta, dict(z=levels, data_maxima=observed,
+                                          inverted_maxima=inverted,
+                                          far_slides_x_live=expected, far_x_live=combined),
+                     dict(far_per_hour=far_x, maxima_far_below=n_below,
+                          expected=far_x * live_data))
     return 0
+
+
+def write_tables(out, meta, levels, calibration):
+    """``levels.ecsv`` (maxima above each Z against the backgrounds' prediction) and
+    ``calibration.ecsv`` (maxima with far <= x against x times the live time) in ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    for name, columns in (("levels", levels), ("calibration", calibration)):
+        table = Table(columns, meta=meta)
+        table.write(out / f"{name}.ecsv", overwrite=True)
+    print(f"tables: {out}")
 
 
 if __name__ == "__main__":

@@ -227,3 +227,49 @@ def beam_normal_equations(along0, across0, y, w, params, geom, response, slope, 
     alpha[3, 0], alpha[3, 1], alpha[3, 2], alpha[3, 3] = s03, s13, s23, s33
     beta[0], beta[1], beta[2], beta[3] = b0, b1, b2, b3
     return chi2
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def beam_amplitude_sums(track_xi, track_eta, det_xi, det_eta, amp, sigma_amp, reach, geom,
+                        response, slope):
+    """``(sum w y B, sum w B^2, n)`` of the unshifted beam ``B`` (as
+    :func:`beam_normal_equations` models it, ``geom`` the same) over the samples of a fit
+    window that can carry it: ``amp`` (ndet, nt) nonzero, ``sigma_amp`` (ndet,) positive
+    (``w = sigma_amp^-2``) and no farther along the scan than ``reach`` (rad) from the
+    track (``track_xi``, ``track_eta``: (nt,)). The amplitude fit of a null position in one
+    pass, without the offsets, masks and model that a full fit builds."""
+    ux, uy, inv_speed, lag0, inv_dlag, inv_sigma2 = (geom[0], geom[1], geom[2], geom[3],
+                                                      geom[4], geom[5])
+    m = len(response)
+    dlag = 1.0 / inv_dlag
+    wyb = wbb = 0.0
+    n = 0
+    for d in range(amp.shape[0]):
+        sigma = sigma_amp[d]
+        if not sigma > 0:
+            continue
+        wk = 1.0 / (sigma * sigma)
+        for t in range(amp.shape[1]):
+            y = float(amp[d, t])
+            if y == 0.0:
+                continue
+            ox = det_xi[d] - track_xi[t]
+            oy = det_eta[d] - track_eta[t]
+            along = ox * ux + oy * uy
+            if abs(along) > reach:
+                continue
+            across = -ox * uy + oy * ux
+            n += 1
+            x = (along * inv_speed - lag0) * inv_dlag
+            if not 0.0 <= x <= m - 1:
+                continue
+            i = min(int(x), m - 2)
+            f = x - i
+            f2 = f * f
+            f3 = f2 * f
+            r = ((2 * f3 - 3 * f2 + 1) * response[i] + (f3 - 2 * f2 + f) * slope[i] * dlag
+                 + (3 * f2 - 2 * f3) * response[i + 1] + (f3 - f2) * slope[i + 1] * dlag)
+            shape = r * np.exp(-0.5 * across * across * inv_sigma2)
+            wyb += wk * y * shape
+            wbb += wk * shape * shape
+    return wyb, wbb, n

@@ -234,6 +234,36 @@ def test_catalogue_slots_survive_concatenation_of_groups():
         group(["x"], 3)
 
 
+def test_a_null_fits_one_pass_equals_the_full_fits_amplitude():
+    """``null_ratio`` (one compiled pass: 2000 of them set paper mode's error scale) is the
+    amplitude fit of the beam model a full fit builds, with invalid samples (zero amplitude,
+    a dead detector) and samples beyond the response's reach left out alike; and the numpy
+    path (non-uniform lags) gives the same."""
+    from so_transients.detect.fit import _beam_samples, null_ratio
+
+    rng = np.random.default_rng(4)
+    track, _ = _gaussian_track()
+    det_xi = rng.uniform(-30, 30, 200) * PITCH
+    det_eta = rng.uniform(-3, 3, 200) * PITCH
+    amp = rng.normal(0, 50, (200, len(track.xi))).astype(np.float32)
+    amp[:, 100:105] = 0.0                          # masked samples
+    sigma_amp = rng.uniform(40, 60, 200)
+    sigma_amp[7] = 0.0                             # a dead detector
+    window = (track, det_xi, det_eta, amp, sigma_amp)
+    beam, ok = _beam_samples(*window)
+    assert 0 < ok.sum() < ok.size and not ok[7].any()
+    a, err = beam.amplitude()
+    assert null_ratio(window, 1.3) == pytest.approx(a / (err * 1.3), rel=1e-9)
+    uneven = Track(track.xi, track.eta, track.along, track.speed, track.sigma,
+                   track.lags * (1 + 1e-3 * (track.lags > 0)), track.response)
+    beam, _ = _beam_samples(uneven, *window[1:])
+    assert beam.geom is None
+    a, err = beam.amplitude()
+    assert null_ratio((uneven, *window[1:])) == pytest.approx(a / err, rel=1e-12)
+    nothing = np.zeros_like(amp)
+    assert np.isnan(null_ratio((track, det_xi, det_eta, nothing, sigma_amp)))
+
+
 def test_compiled_normal_equations_equal_the_numpy_ones():
     """The fit's one-pass kernel (uniform lags) and the numpy spline + Jacobian path agree."""
     from so_transients.detect.fit import _BeamModel

@@ -85,31 +85,3 @@ def test_too_few_finite_detectors_is_an_error_naming_the_step_and_group():
     with pytest.raises(ValueError, match=r"transient_pca_filter: unknown observation "
                                          r"\(all detectors\): 2 detectors"):
         run(aman, "transient_pca_filter")
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("seed", [3, 9])
-def test_on_a_real_wafer_the_production_pca_cleans_as_sotodlibs(tmp_path, seed):
-    """Every imperfection at once (studies/configs/real_wafer.yaml), the production config's
-    steps up to the PCA, then its 10 modes by either step: the same cleaned detectors."""
-    import yaml
-
-    from so_transients.campaign.real_wafer import simulate_seed
-    from so_transients.site.pipeline import PRODUCTION
-
-    pipe = yaml.safe_load(PRODUCTION.read_text())["process_pipe"]
-    k = [step["name"] for step in pipe].index("transient_pca_filter")
-    sim = simulate_seed(tmp_path, seed=seed, duration=300.0, flares=[])
-    aman = core.Context(str(sim.context)).get_obs(sim.obs_ids[0])
-    Pipeline(pipe[:k]).run(aman)
-    signal, model = np.array(aman.signal), np.array(aman.lpf_signal)
-    Pipeline([dict(pipe[k], name="pca_filter")]).run(aman)
-    theirs = np.array(aman.signal)
-    aman.signal[...], aman.lpf_signal[...] = signal, model
-    Pipeline([pipe[k]]).run(aman)
-    residual = np.std(theirs, axis=1)
-    live = residual > 0
-    assert live.sum() > 500
-    # measured: 1e-4 of each detector's cleaned noise at most (float32 rounding)
-    change = np.std(np.asarray(aman.signal) - theirs, axis=1)[live] / residual[live]
-    assert change.max() < 1e-3

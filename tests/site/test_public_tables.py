@@ -1,17 +1,15 @@
 """Every public table gives angles in degrees: beside the archive's radians in memory, alone in
 a written file; a written catalogue reads back as written (empty ``cut_reason`` as '',
-booleans as booleans) and with its radians restored by the package's reader."""
+booleans as booleans) and with its radians restored by the package's reader. The archive's
+own tables (both readers) are checked on a real run in tests/site/test_site_pipeline.py."""
 import numpy as np
 import pytest
 
 from so_transients.common import candidates
 from so_transients.common.angles import ARCSEC, DEG
 from so_transients.common.tables import read_table
-from so_transients.site.pipeline import (
-    PAPER, failed_groups, preprocess_context, run_site_pipeline, write_site_config
-)
-from so_transients.site.results import (archive_table, observation_table, read_catalogue,
-                                        readable_columns, with_readable_columns, write_table)
+from so_transients.site.results import (read_catalogue, readable_columns,
+                                        with_readable_columns, write_table)
 
 
 def catalogue():
@@ -76,22 +74,3 @@ def test_a_written_catalogue_reads_back_as_written(tmp_path, suffix):
     for name in radians:
         expected = np.mod(catalogue()[name], 2 * np.pi) if name.endswith("ra") else catalogue()[name]
         assert np.allclose(again[name], expected, rtol=1e-14, atol=0), name
-
-
-@pytest.mark.slow
-def test_both_readers_give_the_same_columns_in_degrees(tmp_path, two_flare_dataset):
-    """observation_table (the Context, all groups at once) and archive_table (group by
-    group) give the same columns and positions, angles in degrees beside radians."""
-    config = write_site_config(two_flare_dataset.context.parent, path=tmp_path / "pp.yaml",
-                               template=PAPER, results=tmp_path / "preprocess")
-    run_site_pipeline(config)
-    assert failed_groups(config) == ""
-    _, ctx = preprocess_context(config)
-    whole = observation_table(ctx, two_flare_dataset.obs_ids[0], detected_only=False)
-    per_group = archive_table(config, detected_only=False)
-    assert whole.colnames == per_group.colnames and len(whole) == len(per_group) > 0
-    for table in (whole, per_group):
-        assert_angles_in_degrees(table)
-    order_w, order_g = np.argsort(whole["t_peak"]), np.argsort(per_group["t_peak"])
-    assert np.allclose(whole["ra_deg"][order_w], per_group["ra_deg"][order_g])
-    assert np.all((whole["ra_deg"] >= 0) & (whole["ra_deg"] < 360))

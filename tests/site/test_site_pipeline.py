@@ -17,6 +17,7 @@ from so_transients.site.pipeline import (
 )
 
 from tests.conftest import run_sim
+from tests.site.test_public_tables import assert_angles_in_degrees
 
 pytestmark = pytest.mark.slow   # end to end: simulates and runs the pipeline
 
@@ -160,12 +161,19 @@ def test_glitches_make_no_detections(flare_run):
 
 
 def test_whole_observation_load_matches_per_group_archive(flare_run):
+    """observation_table (the Context, all groups at once) and archive_table (group by
+    group) give the same rows, columns and positions, angles in degrees beside radians."""
     sim, config = flare_run
     _, ctx = preprocess_context(config)
     whole = observation_table(ctx, sim.obs_ids[0], detected_only=False)
     per_group = archive_table(config, detected_only=False)
-    assert len(whole) == len(per_group) > 0
-    assert np.allclose(np.sort(whole["t_peak"]), np.sort(per_group["t_peak"]))
+    assert whole.colnames == per_group.colnames and len(whole) == len(per_group) > 0
+    for table in (whole, per_group):
+        assert_angles_in_degrees(table)
+    order_w, order_g = np.argsort(whole["t_peak"]), np.argsort(per_group["t_peak"])
+    assert np.allclose(whole["t_peak"][order_w], per_group["t_peak"][order_g])
+    assert np.allclose(whole["ra_deg"][order_w], per_group["ra_deg"][order_g])
+    assert np.all((whole["ra_deg"] >= 0) & (whole["ra_deg"] < 360))
 
 
 def test_catalog_command_writes_ecsv_and_fits_with_units(flare_run, tmp_path):

@@ -1,6 +1,8 @@
 """Shared fixtures: small simulated datasets written once per test session, and folders for a
 module's own data that go when its tests are done."""
+import fcntl
 import os
+import pickle
 import shutil
 
 import pytest
@@ -71,17 +73,34 @@ def module_tmp(tmp_path_factory):
         shutil.rmtree(path, ignore_errors=True)
 
 
+def shared_dataset(tmp_path_factory, name, make):
+    """``make(folder)``'s result, made once per test session for every xdist worker: the
+    first worker to ask makes it in a folder of the session's shared root (under a lock, the
+    others wait for it) and pickles it there; the others unpickle it. Its users only read
+    it. Without xdist, once per session as any session fixture."""
+    base = tmp_path_factory.getbasetemp()
+    root = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "shared"
+    root.mkdir(exist_ok=True)
+    with open(root / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        done = root / f"{name}.pkl"
+        if done.exists():
+            return pickle.loads(done.read_bytes())
+        folder = root / name
+        shutil.rmtree(folder, ignore_errors=True)      # a worker that failed half way
+        result = make(folder)
+        done.write_bytes(pickle.dumps(result))
+        return result
+
+
 @pytest.fixture(scope="session")
 def imperfect_bright_dataset(tmp_path_factory):
     """``get(dead_mode)``: :func:`run_imperfect_sim` with ``BRIGHT_FLARE`` over 240 s,
     simulated once per session and dead mode (tests only read it)."""
-    made = {}
-
     def get(dead_mode):
-        if dead_mode not in made:
-            made[dead_mode] = run_imperfect_sim(tmp_path_factory.mktemp(f"imperfect_{dead_mode}"),
-                                                BRIGHT_FLARE, 240.0, dead_mode)
-        return made[dead_mode]
+        return shared_dataset(tmp_path_factory, f"imperfect_{dead_mode}",
+                              lambda folder: run_imperfect_sim(folder, BRIGHT_FLARE, 240.0,
+                                                               dead_mode))
 
     return get
 
@@ -89,9 +108,9 @@ def imperfect_bright_dataset(tmp_path_factory):
 @pytest.fixture(scope="session")
 def noisy_dataset(tmp_path_factory):
     """Five minutes of one MF wafer (both bands) with every noise component on."""
-    return run_sim(tmp_path_factory.mktemp("noisy"), seed=11,
-                   observation={"duration": 300.0},
-                   flares={"n": 2, "s_peak_mjy": [500, 1000]})
+    return shared_dataset(tmp_path_factory, "noisy", lambda folder: run_sim(
+        folder, seed=11, observation={"duration": 300.0},
+        flares={"n": 2, "s_peak_mjy": [500, 1000]}))
 
 
 @pytest.fixture(scope="session")
@@ -99,9 +118,9 @@ def two_flare_dataset(tmp_path_factory):
     """Five minutes of w16 at f090 (every noise component) with two bright flares; tests
     that run the site pipeline on it write their configs and archives elsewhere
     (``write_site_config(..., path=..., results=...)``)."""
-    return run_sim(tmp_path_factory.mktemp("two_flares"), seed=41,
-                   observation={"duration": 300.0}, instrument={"bands": ["f090"]},
-                   flares={"n": 2, "s_peak_mjy": [1500, 2500], "t_rise": [2, 20]})
+    return shared_dataset(tmp_path_factory, "two_flares", lambda folder: run_sim(
+        folder, seed=41, observation={"duration": 300.0}, instrument={"bands": ["f090"]},
+        flares={"n": 2, "s_peak_mjy": [1500, 2500], "t_rise": [2, 20]}))
 
 
 @pytest.fixture(scope="session")

@@ -58,8 +58,9 @@ install-py313:
 	@test -x .venv313/bin/python || $(PY313) -m venv .venv313
 	@.venv313/bin/python -m pip install -qq --disable-pip-version-check -e '.[test,docs]' -c constraints.txt
 
+PY313_WORKERS ?= auto
 test-py313: install-py313
-	$(THREADS) .venv313/bin/python -m pytest $(XDIST) -m "not slow" -p no:cacheprovider
+	$(THREADS) .venv313/bin/python -m pytest -n $(PY313_WORKERS) --dist loadfile -m "not slow" -p no:cacheprovider
 
 # ruff, configured in pyproject.toml
 lint: $(STAMP)

@@ -43,7 +43,8 @@ from sotodlib.preprocess import Pipeline
 from so_transients.preprocess import step_fields
 from so_transients.preprocess.sotodlib_steps import sotodlib_name
 from so_transients.detect.find import FindConfig
-from so_transients.detect.fit import FitConfig, FitInputs, measure_error_scale
+from so_transients.detect.error_scale import ErrorScale, Sources, measure_error_scales
+from so_transients.detect.fit import FitConfig, FitInputs
 from so_transients.campaign.noise_model import NoiseModel
 from so_transients.campaign.pca_response import PcaResponse, model_signal_filter
 from so_transients.common.pointing import BORE_Q, boresight_q
@@ -54,8 +55,8 @@ from so_transients.campaign.search_steps import SEARCH_STEPS, SearchSteps, step_
 log = logging.getLogger(__name__)
 #: ``info.json``'s ``format``: a group prepared in another format is prepared again (2: the
 #: PCA's weights and mask limits are kept for the fast path, :mod:`.pca_response`; 3: the
-#: filter's own ``n_eff`` per detector)
-PREPARED_FORMAT = 3
+#: filter's own ``n_eff`` per detector; 4: the fit's error scale in each scan direction)
+PREPARED_FORMAT = 4
 KEEP_FIELDS = ("timestamps", "boresight", "focal_plane", "det_info", "obs_info", "flags",
                "transient_filter", BORE_Q, "iir_params", "transient_pca_filter",
                "transient_pca_mask")
@@ -136,14 +137,14 @@ def prepare_group(context, group: Group, standard_steps, search_steps, folder):
     np.save(folder / "snr.npy", np.asarray(aman.transient_snr, np.float32))
     live = np.flatnonzero(~np.asarray(aman.transient_filter.dead, bool))
     data = FitInputs.from_aman(aman, step_settings(search_steps, FindConfig).speed_tolerance)
-    scale = measure_error_scale(data, live, np.zeros(0),
-                                step_settings(search_steps, FitConfig))
+    scale = measure_error_scales(data, live, Sources.none(),
+                                 step_settings(search_steps, FitConfig))
     for name in [n for n in aman._fields if n not in KEEP_FIELDS]:
         aman.move(name, None)
     aman.save(str(folder / "state.h5"), overwrite=True)
     _save_response(context, aman, folder)
     noise_rms = float(np.median(np.asarray(aman.transient_filter.noise_level)[live]))
-    info = dict(format=PREPARED_FORMAT, error_scale=float(scale), duration=duration,
+    info = dict(format=PREPARED_FORMAT, error_scale=scale.as_list(), duration=duration,
                 n_dets=int(aman.dets.count), noise_rms=noise_rms,
                 tau_deconvolved=deconvolves_time_constants(standard_steps),
                 pca_lowpass=model_signal_filter(standard_steps)[1])
@@ -253,7 +254,7 @@ class GroupState:
     aman: core.AxisManager
     snr: np.ndarray            # memory-mapped (dets, samps)
     model: NoiseModel
-    error_scale: float
+    error_scale: ErrorScale
     timestamps: np.ndarray
     bore_q: np.ndarray
     xi: np.ndarray
@@ -276,7 +277,7 @@ class GroupState:
         _slim(aman)
         xi, eta = np.asarray(aman.focal_plane.xi), np.asarray(aman.focal_plane.eta)
         return cls(group, aman, _read_ahead(np.load(folder / "snr.npy", mmap_mode="r")),
-                   model, info["error_scale"],
+                   model, ErrorScale.of(info["error_scale"]),
                    np.asarray(aman.timestamps), np.asarray(aman[BORE_Q]), xi, eta,
                    np.asarray(aman.transient_filter.sigma_amp), search_steps,
                    Response.load(folder, xi, eta, info), pca)

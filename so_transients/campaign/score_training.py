@@ -54,6 +54,7 @@ from so_transients.campaign.provenance import commit, today
 from so_transients.campaign.real_wafer import run_mode
 from so_transients.common.angles import ARCMIN
 from so_transients.common.bands import get_band
+from so_transients.detect.error_scale import ErrorScale, median_scales
 from so_transients.score.model import ScoreModel
 from so_transients.score.person_labels import with_person_labels
 from so_transients.score.training import rejection, threshold_at_recall, train_model
@@ -152,14 +153,16 @@ def variants(cfg) -> list:
 
 def open_cuts_template(template, error_scale, out) -> Path:
     """A copy of the site config ``template`` whose ``transient_cuts`` pass every candidate
-    (each is then fitted) and whose ``transient_fit`` uses the fixed ``error_scale`` of the
-    run with the cuts (which avoids only the candidates that passed them when measuring it)."""
+    (each is then fitted) and whose ``transient_fit`` uses the fixed ``error_scale`` (one
+    number, or an :class:`~so_transients.detect.error_scale.ErrorScale`) of the run with the
+    cuts (whose null fits kept clear of only the candidates that passed them)."""
     cfg = yaml.safe_load(Path(template).read_text())
     for step in cfg["process_pipe"]:
         if step["name"] == "transient_cuts":
             step["calc"] = {**(step.get("calc") or {}), **OPEN_CUTS}
         if step["name"] == "transient_fit":
-            step["calc"] = {**(step.get("calc") or {}), "error_scale": float(error_scale)}
+            step["calc"] = {**(step.get("calc") or {}),
+                            "error_scale": ErrorScale.of(error_scale).as_list()}
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(yaml.safe_dump(cfg, sort_keys=False))
     return out
@@ -202,8 +205,8 @@ def make_candidates(cfg, kind, seed, scan, progress=True):
         path = candidates_path(cfg, kind, seed, mode, variant)
         if variant == "open":
             cut = Table.read(candidates_path(cfg, kind, seed, mode))
-            scales = np.asarray(cut["error_scale"], float)
-            scale = float(np.median(scales[np.isfinite(scales)])) if len(cut) else 1.0
+            scale = (median_scales(cut["error_scale"], cut["direction"]) if len(cut)
+                     else None) or ErrorScale(1.0, 1.0)
             site = open_cuts_template(template, scale, work / "open_template.yaml")
             every = run_mode(sim, work / "runs_open", mode, cfg.max_far, template=site,
                              every=True)

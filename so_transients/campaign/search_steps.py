@@ -18,6 +18,7 @@ from sotodlib.preprocess import Pipeline
 
 from so_transients.common import candidates
 from so_transients.detect.find import FindConfig
+from so_transients.detect.error_scale import ErrorScale
 from so_transients.coherent.config import CoherentConfig, stacking_of
 from so_transients.preprocess.step_settings import step_of, step_setting
 
@@ -72,7 +73,8 @@ def before_fit(steps, entry) -> list:
 
 class SearchSteps:
     """``transient_find`` -> ``transient_cuts`` -> ``transient_fit`` from config entries,
-    with saving and plotting off; ``error_scale`` fixes the fit's error scale."""
+    with saving and plotting off; ``error_scale`` (one number, or an
+    :class:`~so_transients.detect.error_scale.ErrorScale`) fixes the fit's error scale."""
 
     def __init__(self, steps, error_scale=None):
         names = [entry["name"] for entry in steps]
@@ -86,7 +88,7 @@ class SearchSteps:
             if entry["name"] == "transient_fit" and error_scale is not None:
                 calc = entry.get("calc")
                 entry["calc"] = {**(calc if isinstance(calc, dict) else {}),
-                                 "error_scale": float(error_scale)}
+                                 "error_scale": ErrorScale.of(error_scale).as_list()}
             self.steps.append(Pipeline.PIPELINE[entry["name"]](entry))
 
     def run(self, aman, obs_id="", fitted=False) -> Table:

@@ -36,6 +36,12 @@ def sample_speed(timestamps, az, el):
     return np.abs(daz) * np.cos(np.asarray(el))
 
 
+def scan_direction(az) -> np.ndarray:
+    """Scan direction per sample (int8): +1 where the azimuth increases (sotodlib's
+    ``flags.right_scan``), -1 where it decreases (``flags.left_scan``)."""
+    return np.where(np.gradient(np.unwrap(np.asarray(az, float))) >= 0, 1, -1).astype(np.int8)
+
+
 def scan_speed(timestamps, az, el, where=""):
     """Median on-sky speed of the boresight (rad/s) while it scans."""
     speed = sample_speed(timestamps, az, el)

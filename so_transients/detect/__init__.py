@@ -6,7 +6,8 @@
 - :mod:`.find` and :mod:`.dbscan`: high-S/N samples clustered per scan (``transient_find``,
   paper mode)
 - :mod:`.cuts`: is a candidate source-like (``transient_cuts``)
-- :mod:`.fit`: the beam-model fit; :mod:`.forced_fit`: the fit at a fixed position, over one or
+- :mod:`.fit`: the beam-model fit; :mod:`.error_scale`: its errors' measured scale, per scan
+  direction; :mod:`.forced_fit`: the fit at a fixed position, over one or
   several crossings; :mod:`.fit_candidates`: a group's candidates fitted
   (``transient_fit``); :mod:`.motion`: detections whose position drifts
 - :mod:`.cutout`: what a person vets a crossing with: a sky cutout made from the TOD and the

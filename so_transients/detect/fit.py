@@ -21,9 +21,9 @@ response to a crossing (``response`` over ``lags``, interpolated smoothly by
 Errors. The fit covariance treats samples as independent, which they are not: filtered samples
 are correlated over the response width (``inflation``, see
 :func:`so_transients.detect.matched_filter.fit_error_inflation`) and neighbouring detectors share
-residual atmosphere. So errors are *measured*: :func:`null_scatter` fits the amplitude at
-random positions away from candidates, and the robust spread of ``A / sigma_A`` there
-(``error_scale``) multiplies every error.
+residual atmosphere. So errors are *measured*: the robust spread of ``A / sigma_A`` of
+amplitude fits at random positions away from sources (:func:`null_ratio`), in each scan
+direction, multiplies every error (``error_scale``: :mod:`so_transients.detect.error_scale`).
 """
 from __future__ import annotations
 
@@ -37,8 +37,7 @@ from so_transients.common import pointing
 from so_transients.detect import spectral_ops
 from so_transients.common.angles import ARCSEC, DEG
 from so_transients.detect.find import SCAN_FIELD
-from so_transients.common.robust import clipped_std
-from so_transients.common.scan_geometry import constant_velocity, samples_in
+from so_transients.common.scan_geometry import constant_velocity, scan_direction
 from so_transients.common.step_config import ConfigError, non_negative, positive, share, setting
 
 #: The scan-speed tolerance ``transient_find`` stores in ``aman.transient_candidates``.
@@ -57,14 +56,17 @@ class FitConfig:
         6.0, "beam sigma",
         "detectors passing within this many beam sigmas are fitted (the 3 sigma position range plus 3 sigma "
         "of beam)")
-    n_null: int = setting(200, "", "random positions used to measure the error scale")
+    n_null: int = setting(200, "", "random positions measuring the error scale, in each scan direction")
     local_window: float | None = setting(
         None, "s",
         "a significant fit's error scale is also measured within this of it, and the larger of the two is "
         "used (null: the group's only; not with a fixed error_scale)")
     n_null_local: int = setting(400, "", "random positions of that local measurement")
     seed: int = setting(0, "", "seed of the random null positions")
-    error_scale: float | None = setting(None, "", "fixed error scale (null: measured on the group)")
+    error_scale: float | list | None = setting(
+        None, "",
+        "fixed error scale: one for both scan directions, or [increasing azimuth, decreasing azimuth] "
+        "(null: measured on the group)")
     max_motion_arcmin_per_min: float = setting(
         5.0, "arcmin / min",
         "detections this far apart per time are linked")
@@ -85,7 +87,7 @@ class FitConfig:
     def __post_init__(self):
         positive("transient_fit", window=self.window, radius_deg=self.radius_deg,
                  min_snr=self.min_snr, cross_scan_sigma=self.cross_scan_sigma,
-                 n_null=self.n_null, error_scale=self.error_scale,
+                 n_null=self.n_null,
                  local_window=self.local_window, n_null_local=self.n_null_local,
                  max_motion_arcmin_per_min=self.max_motion_arcmin_per_min,
                  min_motion_arcmin_per_min=self.min_motion_arcmin_per_min,
@@ -94,6 +96,14 @@ class FitConfig:
                  split_floor_arcsec=self.split_floor_arcsec,
                  split_floor_flux=self.split_floor_flux)
         non_negative("transient_fit", seed=self.seed)
+        if self.error_scale is not None:
+            values = self.error_scale if isinstance(self.error_scale, (list, tuple)) \
+                else [self.error_scale]
+            if len(values) not in (1, 2) or not all(
+                    isinstance(v, (int, float)) and v > 0 for v in values):
+                raise ConfigError("transient_fit: error_scale must be a positive number or two "
+                                  f"([increasing azimuth, decreasing azimuth]), got "
+                                  f"{self.error_scale}")
         share("transient_fit", min_real_score=self.min_real_score)
         if self.min_real_score is not None and self.score_model is None:
             raise ConfigError("transient_fit: min_real_score needs a score_model (a model "
@@ -122,6 +132,7 @@ class FitInputs:
     response: np.ndarray         # ... (ndet, nlag): each detector's band's
     scanning: np.ndarray = None  # (nsamps,) bool: at the template's scan speed (None: all)
     scan: np.ndarray = None      # (nsamps,) transient_find's scan index (sweep stacks' fit)
+    direction: np.ndarray = None  # (nsamps,) +1 where the azimuth increases, -1 where it falls
 
     @classmethod
     def from_aman(cls, aman, speed_tolerance=None):
@@ -144,7 +155,8 @@ class FitInputs:
                    np.asarray(summary.fit_inflation, float), np.asarray(summary.lag),
                    np.atleast_2d(np.asarray(summary.response)),
                    constant_velocity(t, az, el, speed_tolerance),
-                   np.asarray(aman[SCAN_FIELD]) if SCAN_FIELD in aman._fields else None)
+                   np.asarray(aman[SCAN_FIELD]) if SCAN_FIELD in aman._fields else None,
+                   scan_direction(az))
 
     def kernel(self, dets):
         """``(response, inflation)`` of detectors ``dets`` (one band: they share them)."""
@@ -435,28 +447,6 @@ def null_ratio(window, inflation=1.0) -> float:
     return a / (err * inflation) if np.isfinite(a) else np.nan
 
 
-def null_scatter(windows, inflation=1.0):
-    """Robust spread of ``A / sigma_A`` for amplitude fits at fixed (null) positions.
-
-    ``windows``: ``(track, det_xi, det_eta, amp, sigma_amp)`` per random position away from
-    any candidate, as :func:`fit_candidate` takes them; the result is the factor by which the
-    naive, inflated errors must grow to describe the actual noise (1 for independent
-    detectors).
-
-    The spread is the standard deviation within 5 MADs (:func:`clipped_std`), not the MAD
-    itself: every fitted S/N is divided by it, and at a cut of 5 an error of e in the scale
-    changes the rate of noise passing it by about exp(25 e). The MAD of 200 null fits is
-    known to 8 % (37 % efficiency), which let noise-only drawn wafers make anywhere from
-    2 to 10 detections in the same 30 minutes depending on the null positions drawn
-    (docs/results/drawn_wafers.md); the clipped standard deviation is known to 5 % from 200,
-    1.6 % from 2000 (``n_null``).
-    """
-    ratios = [r for r in (null_ratio(w, inflation) for w in windows) if np.isfinite(r)]
-    if len(ratios) < 10:
-        return 1.0
-    return clipped_std(ratios)
-
-
 def split_sigma(track: Track, det_xi, det_eta, amp, sigma_amp, inflation=1.0, error_scale=1.0,
                 floor=10 * ARCSEC, floor_flux=0.1):
     """How far apart the fits of two halves of the detectors are, in errors: the window's
@@ -554,36 +544,3 @@ def fit_at(data: FitInputs, ra, dec, t_center, band_dets, error_scale, cfg: FitC
         mid = (hi - lo) // 2
         res.update(to_sky(q[mid:mid + 1], track.xi[mid], track.eta[mid], res))
     return res
-
-
-def measure_error_scale(data: FitInputs, band_dets, cand_times, cfg: FitConfig, around=None):
-    """Measured spread of the fitted amplitude at ``cfg.n_null`` random positions of the live
-    detectors of ``band_dets``, more than 2 s from ``cand_times`` (see :func:`null_scatter`).
-    With ``around`` (a time): at ``cfg.n_null_local`` positions within ``cfg.local_window``
-    seconds of it instead (1.0 when fewer than 100 can be fitted there)."""
-    dets = band_dets[~data.dead[band_dets]]
-    t = data.timestamps
-    rng = np.random.default_rng(cfg.seed)
-    n_win = samples_in(t, cfg.window)
-    lo_ok, hi_ok = n_win + 1, len(t) - n_win - 1
-    n_null = cfg.n_null
-    if around is not None:
-        lo_ok = max(lo_ok, int(np.searchsorted(t, around - cfg.local_window)))
-        hi_ok = min(hi_ok, int(np.searchsorted(t, around + cfg.local_window)))
-        n_null = cfg.n_null_local
-    if not len(dets) or hi_ok <= lo_ok:
-        return 1.0
-    centers = rng.integers(lo_ok, hi_ok, size=4 * n_null)
-    far = np.min(np.abs(t[centers][:, None] - np.asarray(cand_times)[None, :]), axis=1,
-                 initial=np.inf) > 2.0
-    centers = centers[far][:n_null]
-    if around is not None and len(centers) < 100:
-        return 1.0
-    picks = rng.choice(dets, size=len(centers))
-    ra, dec = pointing.radec_of_samples(data.bore_q, data.xi, data.eta, picks, centers)
-    windows = []
-    for k, s in enumerate(centers):
-        lo, hi = s - n_win, s + n_win + 1
-        _, track, near = fit_window(data, ra[k], dec[k], lo, hi, dets, cfg)
-        windows.append(window_arrays(data, track, near, lo, hi))
-    return null_scatter(windows, data.kernel(dets)[1])

@@ -13,7 +13,10 @@ import numpy as np
 from so_transients.common import candidates
 from so_transients.common.angles import ARCMIN, ARCSEC, sky_separation
 from so_transients.common.bands import CENTER_GHZ, fwhm_to_sigma
-from so_transients.detect.fit import FitConfig, FitInputs, fit_at, measure_error_scale
+from so_transients.detect.error_scale import (
+    ErrorScale, Sources, measure_error_scale, measure_error_scales
+)
+from so_transients.detect.fit import FitConfig, FitInputs, fit_at
 from so_transients.detect.forced_fit import stack_fit
 from so_transients.detect.motion import flag_moving
 
@@ -28,16 +31,18 @@ def fit_group_candidates(data: FitInputs, cands, det_bands, cfg: FitConfig, scor
     returns every ``transient_fit`` column. ``score``: a function of the candidates' columns
     (with the fit's) giving ``real_score`` and ``pass_score`` (a real-or-artefact score and
     its cut, :mod:`so_transients.score`), or None. Significant fits whose positions move from scan
-    to scan are flagged ``moving`` and not ``detected``. The error scale is ``cfg.error_scale`` or, per
-    band, measured at null positions that avoid only the candidates that passed the cuts
-    (avoiding every candidate would leave only the quietest stretches and bias it low)."""
+    to scan are flagged ``moving`` and not ``detected``. The error scale is ``cfg.error_scale``
+    or, per band and scan direction, measured at null positions clear of the candidates that
+    passed the cuts (:func:`so_transients.detect.error_scale.measure_error_scales`); each
+    candidate's fit takes the scale of its own sweep's direction."""
     n = len(cands["bandpass"])
     passed = np.asarray(cands.get("passed", np.ones(n, bool)), bool)
-    scales = {b: cfg.error_scale or measure_error_scale(
-                  data, np.flatnonzero(det_bands == b), cands["t_median"][passed], cfg)
+    sources = Sources.of_candidates(cands, passed)
+    scales = {b: ErrorScale.of(cfg.error_scale) or measure_error_scales(
+                  data, np.flatnonzero(det_bands == b), sources, cfg)
               for b in np.unique(cands["bandpass"][passed])}
-    rows = [_fit_one(data, cands, c, det_bands, scales, cfg) if passed[c] else {}
-            for c in range(n)]
+    rows = [_fit_one(data, cands, c, det_bands, scales[cands["bandpass"][c]], cfg)
+            if passed[c] else {} for c in range(n)]
     if cfg.local_window is not None and cfg.error_scale is None:
         _local_scales(data, cands, det_bands, scales, rows, cfg)
     schema = candidates.BY_NAME
@@ -59,9 +64,10 @@ def fit_group_candidates(data: FitInputs, cands, det_bands, cfg: FitConfig, scor
 
 def _local_scales(data: FitInputs, cands, det_bands, scales, rows, cfg: FitConfig):
     """Refit, in ``rows``, each single-crossing fit significant at its band's error scale
-    with the scale measured within ``cfg.local_window`` seconds of it when that is larger
-    (:func:`so_transients.detect.fit.measure_error_scale` with ``around``), away from every
-    such fit.
+    with the scale measured within ``cfg.local_window`` seconds of it, in sweeps of its own
+    direction, when that is larger
+    (:func:`so_transients.detect.error_scale.measure_error_scale` with ``around``), clear of
+    every such fit.
 
     Why: the noise is not stationary, and a noise fluctuation is fitted significant where
     it is higher. On ten noise-only drawn wafers (docs/results/drawn_wafers.md) the spread
@@ -70,13 +76,14 @@ def _local_scales(data: FitInputs, cands, det_bands, scales, rows, cfg: FitConfi
     single = np.asarray(cands.get("n_crossings", np.ones(len(rows), int))) == 1
     significant = [c for c, r in enumerate(rows) if r.get("fit_ok") and single[c]
                    and np.nan_to_num(r.get("snr_fit", np.nan)) >= cfg.min_snr]
-    times = np.asarray(cands["t_median"])[significant]
+    sources = Sources.of_candidates(cands, significant)
     for c in significant:
-        band = cands["bandpass"][c]
-        local = measure_error_scale(data, np.flatnonzero(det_bands == band), times, cfg,
-                                    around=float(cands["t_median"][c]))
-        if local > scales[band]:
-            rows[c] = _fit_one(data, cands, c, det_bands, {band: local}, cfg)
+        band, direction = cands["bandpass"][c], _direction(data, cands, c)
+        local = measure_error_scale(data, np.flatnonzero(det_bands == band), sources, cfg,
+                                    direction, around=float(cands["t_median"][c]))
+        if local > scales[band].at(direction):
+            rows[c] = _fit_one(data, cands, c, det_bands,
+                               scales[band].with_value(direction, local), cfg)
 
 
 def detection_decision(cands, fits, cfg: FitConfig, fwhm_by_band):
@@ -194,17 +201,23 @@ def crossing_duplicates(scan, bands, ra, dec, preference, radius):
     return repeats
 
 
-def _fit_one(data: FitInputs, cands, c, det_bands, scales, cfg: FitConfig):
-    """Candidate ``c``'s fit: :func:`fit_at`, or for a sweep stack (``n_crossings`` > 1) the
-    combined fixed-position fit of its crossings
+def _direction(data: FitInputs, cands, c) -> int:
+    """Scan direction (+1, -1) of the sweep candidate ``c`` was found in."""
+    at = np.searchsorted(data.timestamps, cands["t_median"][c])
+    return int(data.direction[min(at, len(data.timestamps) - 1)])
+
+
+def _fit_one(data: FitInputs, cands, c, det_bands, scale: ErrorScale, cfg: FitConfig):
+    """Candidate ``c``'s fit with its band's error ``scale``: :func:`fit_at` at the scale of
+    its sweep's direction, or for a sweep stack (``n_crossings`` > 1) the combined
+    fixed-position fit of its crossings, each at its own direction's
     (:func:`so_transients.detect.forced_fit.stack_fit`)."""
     band = cands["bandpass"][c]
     args = (data, cands["cluster_ra"][c], cands["cluster_dec"][c])
     dets = np.flatnonzero(det_bands == band)
     if int(cands.get("n_crossings", np.ones(c + 1, int))[c]) > 1:
-        return stack_fit(*args, cands["t_start"][c], cands["t_stop"][c], dets, scales[band],
-                         cfg)
-    return fit_at(*args, cands["t_median"][c], dets, scales[band], cfg)
+        return stack_fit(*args, cands["t_start"][c], cands["t_stop"][c], dets, scale, cfg)
+    return fit_at(*args, cands["t_median"][c], dets, scale.at(_direction(data, cands, c)), cfg)
 
 
 def split_ok(split, max_split_sigma):

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from so_transients.common import pointing
+from so_transients.detect.error_scale import ErrorScale
 from so_transients.detect.fit import (
     FitConfig, FitInputs, fit_fixed_position, fit_window, window_arrays
 )
@@ -72,8 +73,11 @@ def measure_crossings(data: FitInputs, ra, dec, times, band_dets, error_scale,
     """Forced photometry of (ra, dec) at each crossing centred at ``times`` on the live
     detectors of ``band_dets``: a dict of :data:`CROSSING_FIELDS` arrays (``t_center`` and
     ``scan`` excepted) for the crossings fitted on at least ``cfg.min_dets`` detectors, and
-    ``keep``, the mask of those crossings."""
+    ``keep``, the mask of those crossings. ``error_scale``: an
+    :class:`~so_transients.detect.error_scale.ErrorScale` (each crossing takes its sweep's
+    direction's) or one number for both."""
     t = data.timestamps
+    scale = ErrorScale.of(error_scale)
     live = band_dets[~data.dead[band_dets]]
     inflation = data.kernel(live)[1]
     rows = []
@@ -84,7 +88,7 @@ def measure_crossings(data: FitInputs, ra, dec, times, band_dets, error_scale,
             continue
         _, track, dets = fit_window(data, ra, dec, lo, hi, live, fit_cfg)
         res = fit_fixed_position(*window_arrays(data, track, dets, lo, hi), inflation,
-                                 error_scale)
+                                 scale.at(data.direction[(lo + hi) // 2]))
         rows.append(res if res["fit_ok"] and res["n_fit_dets"] >= cfg.min_dets else None)
     keep = np.array([r is not None for r in rows], bool)
     rows = [r for r in rows if r is not None]
@@ -107,7 +111,9 @@ def stack_fit(data: FitInputs, ra, dec, t_lo, t_hi, band_dets, error_scale,
     one flux, as the stack assumes a flux steady over its crossings. ``fit_ok`` needs two
     crossings fitted; the position is the stack's, with the error of a beam centroid at the
     combined S/N (sqrt(2) beam sigma / S/N per axis); no single ``offset`` (each crossing
-    has its own). Some of :data:`so_transients.detect.fit_candidates.OUTPUT_FIELDS` (the rest: their fill)."""
+    has its own); each crossing's errors at its sweep direction's ``error_scale``, and the
+    larger of the two as the stack's ``error_scale``. Some of
+    :data:`so_transients.detect.fit_candidates.OUTPUT_FIELDS` (the rest: their fill)."""
     if data.scan is None:
         raise ValueError("a sweep stack's fit needs transient_find's scan index "
                          "(aman.transient_scan): run transient_find first")
@@ -118,7 +124,7 @@ def stack_fit(data: FitInputs, ra, dec, t_lo, t_hi, band_dets, error_scale,
     res = measure_crossings(data, ra, dec, times, band_dets, error_scale, fit_cfg,
                             PhotometryConfig())
     out = dict(ra=float(ra), dec=float(dec), n_fit_dets=int(res["n_fit_dets"].sum()),
-               error_scale=error_scale, fit_ok=len(res["flux"]) >= 2)
+               error_scale=ErrorScale.of(error_scale).largest, fit_ok=len(res["flux"]) >= 2)
     if not out["fit_ok"]:
         return out
     w = 1.0 / res["flux_err"] ** 2

@@ -42,6 +42,7 @@ from tqdm.auto import tqdm
 
 from so_transients.common.parallel import executor, is_worker_rank, run_all
 from so_transients.common.tables import for_writing
+from so_transients.detect.error_scale import ErrorScale, median_scales
 from so_transients.site.provenance import attach, provenance
 from so_transients.site.results import (
     archive_entries, archive_status, archive_table, output_format
@@ -98,8 +99,10 @@ def file_stamp(path) -> str:
     return f"{stat.st_size}:{stat.st_mtime_ns}"
 
 
-def _error_scale(cands: Table, obs_id, tags) -> float | None:
-    """The error scale ``transient_fit`` measured in this group (None: it fitted nothing)."""
+def _error_scale(cands: Table, obs_id, tags) -> ErrorScale | None:
+    """The error scales ``transient_fit`` measured in this group, in each scan direction
+    (:func:`~so_transients.detect.error_scale.median_scales`; None: it fitted nothing in
+    one of them)."""
     sel = np.asarray(cands["obs_id"]) == obs_id
     matched = [key for key in tags if key in cands.colnames]
     if tags and not matched:
@@ -107,9 +110,7 @@ def _error_scale(cands: Table, obs_id, tags) -> float | None:
                     "is taken from the whole observation", obs_id, sorted(tags))
     for key in matched:
         sel &= np.asarray(cands[key]).astype(str) == str(tags[key])
-    scales = np.asarray(cands["error_scale"][sel], float)
-    scales = scales[np.isfinite(scales)]
-    return float(np.median(scales)) if len(scales) else None
+    return median_scales(cands["error_scale"][sel], cands["direction"][sel])
 
 
 def make_jobs(cfg: EventsConfig, events: Table, cands: Table, out: Path) -> list:

@@ -25,7 +25,8 @@ from astropy.table import Table
 from so_transients.common import pointing
 from so_transients.detect.cutout import crossing_streams, cutout_map
 from so_transients.detect.find import FindConfig, group_scans
-from so_transients.detect.fit import FitConfig, FitInputs, fit_window, measure_error_scale
+from so_transients.detect.error_scale import ErrorScale, Sources, measure_error_scales
+from so_transients.detect.fit import FitConfig, FitInputs, fit_window
 from so_transients.detect.forced_fit import PhotometryConfig, group_crossings, measure_crossings
 from so_transients.site.pipeline import read_config
 
@@ -43,7 +44,7 @@ class GroupJob:
     obs_id: str
     tags: dict                       # the group's det_info selection, e.g. wafer_slot, bandpass
     events: list                     # dicts: event_id, ra, dec, t_lo, t_hi (rad, ctime)
-    error_scale: float | None        # the group's transient_fit error scale (None: measure)
+    error_scale: ErrorScale | None   # the group's transient_fit error scales (None: measure)
     fit: FitConfig = field(default_factory=FitConfig)
     find: FindConfig = field(default_factory=FindConfig)
     photometry: PhotometryConfig = field(default_factory=PhotometryConfig)
@@ -164,11 +165,12 @@ def measure_group(job: GroupJob):
         reach = 3 * float(np.median(data.beam_sigma[band_dets]))
         crossings = [group_crossings(data, scan, ev["ra"], ev["dec"], ev["t_lo"], ev["t_hi"],
                                      band_dets, reach) for ev in job.events]
-        # transient_fit's scale for this group, else its fixed one, else measured as it
-        # measures it, away from every crossing of the events
-        scale = job.error_scale or job.fit.error_scale or measure_error_scale(
-            data, band_dets, np.concatenate([c[0] for c in crossings] + [np.zeros(0)]),
-            job.fit)
+        # transient_fit's scales for this group, else its fixed one, else measured as it
+        # measures them, clear of every crossing of the events
+        sources = Sources.join(Sources.at(c[0], ev["ra"], ev["dec"])
+                               for c, ev in zip(crossings, job.events))
+        scale = job.error_scale or ErrorScale.of(job.fit.error_scale) or measure_error_scales(
+            data, band_dets, sources, job.fit)
         for ev, (times, scans) in zip(job.events, crossings):
             res = measure_crossings(data, ev["ra"], ev["dec"], times, band_dets, scale,
                                     job.fit, job.photometry)

@@ -784,11 +784,15 @@ class TransientFit(_Preprocess):
     halves of its detectors agree within ``max_split_sigma`` errors (``split_sigma``,
     ``pass_split``: a fit pulled off the source by a few detectors whose data or weights
     are wrong does not, see :func:`so_transients.detect.fit.split_sigma`). Errors are scaled by
-    ``error_scale``, the measured spread of the same fit at ``n_null`` random positions away
-    from candidates (residual atmosphere is correlated between neighbouring detectors, so the
-    naive covariance is too small), unless a fixed ``error_scale`` is configured (injection
-    campaigns fix it from the noise-only data). With ``local_window``, a fit significant at
-    that scale is refitted with the scale measured at ``n_null_local`` positions within
+    ``error_scale``, the measured spread of the same fit at ``n_null`` random positions clear
+    of the candidates (residual atmosphere is correlated between neighbouring detectors, so
+    the naive covariance is too small), measured in each scan direction and applied to each
+    candidate by the direction of its sweep (the wind makes the residual atmosphere differ
+    between sweeps of increasing and decreasing azimuth, see
+    :mod:`so_transients.detect.error_scale`), unless a fixed ``error_scale`` is configured
+    (one number, or ``[increasing, decreasing]``; injection campaigns fix it from the
+    noise-only data). With ``local_window``, a fit significant at that scale is refitted with
+    the scale measured at ``n_null_local`` positions of its sweep direction within
     ``local_window`` seconds of it when that is larger (the noise is not stationary).
 
     In ``aman.transient_candidates`` and saved to the archive as ``proc_aman.transient_fit``
@@ -819,11 +823,11 @@ class TransientFit(_Preprocess):
           radius_deg: 1.0
           min_snr: 5.0
           cross_scan_sigma: 6.0           # detectors passing within this many beam sigmas
-          n_null: 200                     # random positions measuring the error scale
+          n_null: 200                     # random positions measuring the error scale (each direction)
           local_window: null              # s: also measured this near each significant fit
           n_null_local: 400               # random positions of that local measurement
           seed: 0                         # for the random null positions
-          error_scale: null               # fixed scale (null: measured on this group)
+          error_scale: null               # fixed scale, or [increasing az, decreasing az] (null: measured)
           max_motion_arcmin_per_min: 5.0  # detections linked across scans up to this rate
           min_motion_arcmin_per_min: 0.1  # linked ones moving faster: a moving source
           motion_floor_arcsec: 10.0       # position error floor of the motion test

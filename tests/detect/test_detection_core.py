@@ -8,7 +8,8 @@ from so_transients.detect.cuts import (
     CutsConfig, apply_cuts, dominant_orientation_fraction, time_order
 )
 from so_transients.detect.find import FindConfig, find_candidates, scan_segments
-from so_transients.detect.fit import Track, fit_candidate, null_scatter
+from so_transients.detect.error_scale import null_scatter
+from so_transients.detect.fit import Track, fit_candidate
 from so_transients.common.angles import ARCMIN
 
 PITCH = 1.574 * ARCMIN

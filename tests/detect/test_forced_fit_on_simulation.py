@@ -5,7 +5,7 @@ simulator makes the time-ordered data (its own beam, pointing per sample, flux p
 the light curve, white noise), ``transient_filter`` runs in process as in the site pipeline,
 and the forced fit measures the true positions from the simulator's truth tables at every
 crossing, as ``so-transients events`` does (``FitInputs.from_aman``, ``group_crossings`` with a
-reach of 3 beam sigmas, ``measure_error_scale``, ``measure_crossings``).
+reach of 3 beam sigmas, ``measure_error_scales``, ``measure_crossings``).
 
 Two effects of the filter, both derived below and both seen:
 
@@ -29,7 +29,8 @@ from so_transients.common.angles import ARCMIN
 from so_transients.common.flare_model import flare_flux
 from so_transients.common.scan_geometry import drift_velocity
 from so_transients.detect.find import FindConfig, group_scans
-from so_transients.detect.fit import FitConfig, FitInputs, measure_error_scale
+from so_transients.detect.error_scale import Sources, measure_error_scales
+from so_transients.detect.fit import FitConfig, FitInputs
 from so_transients.detect.forced_fit import PhotometryConfig, group_crossings, measure_crossings
 
 from tests.conftest import load_group, run_sim, run_steps
@@ -122,12 +123,12 @@ class Group:
         self.scan, _ = group_scans(aman.timestamps, aman.boresight.az, aman.boresight.el, find)
         self.dets = np.arange(aman.dets.count)
         self.reach = 3 * float(np.median(self.data.beam_sigma))
-        # the error scale as transient_fit measures it, away from every source's crossings,
+        # the error scales as transient_fit measures them, clear of every source's crossings,
         # on 2000 null positions: with the default 200, its robust spread is known to 8 %
         # (measured 0.87-1.15 over seeds 3-6), which every pull would inherit
-        sources = self.truth()
-        times = np.concatenate([self.crossings(ra, dec) for ra, dec, _ in sources] + [[]])
-        self.scale = measure_error_scale(self.data, self.dets, times, FitConfig(n_null=2000))
+        sources = Sources.join(Sources.at(self.crossings(ra, dec), ra, dec)
+                               for ra, dec, _ in self.truth())
+        self.scale = measure_error_scales(self.data, self.dets, sources, FitConfig(n_null=2000))
 
     def truth(self):
         """(ra, dec, light curve) of every simulated source."""

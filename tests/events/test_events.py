@@ -13,7 +13,7 @@ from so_transients.detect.fit import FitConfig, FitInputs
 from so_transients.detect.forced_fit import PhotometryConfig, group_crossings, measure_crossings
 from so_transients.common.flare_model import flare_flux
 from so_transients.events.lightcurve_fit import FlareFitConfig, fit_flare, spectral_index
-from so_transients.common.scan_geometry import constant_velocity
+from so_transients.common.scan_geometry import constant_velocity, scan_direction
 from so_transients.sim.scan import ScanPattern, boresight
 
 T0 = 1_700_000_000.0
@@ -99,7 +99,7 @@ def synthetic_group(light_curve, duration=90.0, fs=100.0):
     scanning = constant_velocity(t, az, el, 0.1)
     data = FitInputs(t, bore_q, xi, eta, np.zeros((ndet, len(t))), np.full(ndet, 50.0),
                      np.zeros(ndet, bool), np.full(ndet, sigma), np.ones(ndet), lags,
-                     response, scanning)
+                     response, scanning, direction=scan_direction(az))
     centre = np.argmin(np.hypot(xi, eta))
     ra, dec = pointing.radec_of_samples(bore_q, xi, eta, [centre], [int(40 * fs)])
     scan, _ = searchable_scans(scanning, t, az, FindConfig())

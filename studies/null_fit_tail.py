@@ -5,15 +5,16 @@ Gaussian, and what the fits in the tail are made of.
     python studies/null_fit_tail.py --drawn 131 132 --ideal 21 22 --n-null 20000
 
 ``transient_fit``'s error scale is the clipped spread of ``A / sigma_A`` over random null
-positions (:func:`so_transients.detect.fit.measure_error_scale`), and paper mode keeps fits
+positions (:func:`so_transients.detect.error_scale.measure_error_scale`), and paper mode keeps fits
 with ``A / sigma_A`` at 5 scales or more: its false-detection rate is the tail of that
 distribution beyond 5, which 2000 null fits cannot see. Here each realization (a drawn wafer,
 :func:`so_transients.campaign.drawn_wafer.drawn_config`, or the ideal wafer of
 ``studies/configs/ideal_wafer.yaml``; noise only, one f090 wafer-band) runs
 ``configs/preprocess_paper.yaml``'s steps up to ``transient_filter`` in process, and
 ``--n-null`` fits at random positions (as the error scale's) are divided by their clipped
-spread. Written: ``null_fit_tail.ecsv`` (per realization: the scale, the per-detector fit
-inflation's spread, counts beyond 3-5 against a Gaussian's) and ``null_fit_tail_rows.ecsv``
+spread. Written: ``null_fit_tail.ecsv`` (per realization: the scale, and in sweeps of each
+scan direction and their range over single sweeps, the per-detector fit inflation's
+spread, counts beyond 3-5 against a Gaussian's) and ``null_fit_tail_rows.ecsv``
 (every fit beyond ``--row-level``: the share of its amplitude on its largest detector, that
 detector's noise against the band's median and its peak S/N in the window, and the time to
 the nearest cosmic ray the simulator put on that detector).
@@ -42,6 +43,7 @@ from so_transients.campaign.search_steps import split_pipe
 from so_transients.common import pointing
 from so_transients.common.robust import clipped_std
 from so_transients.common.scan_geometry import samples_in
+from so_transients.detect.find import FindConfig, group_scans
 from so_transients.detect.fit import (
     FitConfig, FitInputs, _beam_samples, fit_window, null_ratio, window_arrays
 )
@@ -90,7 +92,7 @@ def cosmic_ray_times(sim_root):
 
 def null_positions(data, live, n_null, cfg, seed):
     """``(centres, ra, dec)``: ``n_null`` fit positions drawn uniformly over the observation
-    and its live detectors (as :func:`so_transients.detect.fit.measure_error_scale` draws
+    and its live detectors (as :func:`so_transients.detect.error_scale.measure_error_scale` draws
     them where no candidate is to be avoided, from ``seed``)."""
     rng = np.random.default_rng(seed)
     t = data.timestamps
@@ -109,6 +111,26 @@ def null_window(data, live, centre, ra, dec, cfg):
     lo, hi = centre - n_win, centre + n_win + 1
     _, track, near = fit_window(data, ra, dec, lo, hi, live, cfg)
     return near, window_arrays(data, track, near, lo, hi)
+
+
+def direction_scales(aman, data, centres, ratios) -> dict:
+    """The clipped spread of the null fits in sweeps of increasing azimuth (``right``) and of
+    decreasing azimuth (``left``), and its range over the single sweeps of each direction
+    (``transient_find``'s scans; sweeps with fewer than 50 fits left out)."""
+    good = np.isfinite(ratios)
+    direction = data.direction[centres]
+    scan, _ = group_scans(aman.timestamps, aman.boresight.az, aman.boresight.el, FindConfig())
+    out = {}
+    for name, d in (("right", 1), ("left", -1)):
+        mine = good & (direction == d)
+        out[f"scale_{name}"] = clipped_std(ratios[mine])
+        per_scan = [clipped_std(ratios[mine & (scan[centres] == k)])
+                    for k in np.unique(scan[centres][mine]) if k >= 0
+                    and np.sum(mine & (scan[centres] == k)) >= 50]
+        out[f"n_scans_{name}"] = len(per_scan)
+        out[f"scan_scale_{name}_min"] = min(per_scan, default=np.nan)
+        out[f"scan_scale_{name}_max"] = max(per_scan, default=np.nan)
+    return out
 
 
 def tail_row(data, aman, centre, z, near, window, rays, median_sigma):
@@ -149,7 +171,7 @@ def realization(kind, seed, folder, args):
     n = int(good.sum())
     inflation = detector_inflation(aman, live)
     row = dict(kind=kind, seed=seed, minutes=args.minutes, n_fits=n, error_scale=scale,
-               inflation_band=inflation_band,
+               **direction_scales(aman, data, centres, ratios), inflation_band=inflation_band,
                inflation_p5=float(np.percentile(inflation, 5)),
                inflation_p95=float(np.percentile(inflation, 95)))
     for level in LEVELS:

@@ -17,26 +17,43 @@ for ideal detectors) it counts the false detections per wafer-band-hour instead.
 ``--site-config`` runs paper mode with another site config (a copy of the shipped one with a
 setting changed). Prints a Markdown table per mode and writes ``real_wafer.json``, and the
 detections no flare explains, with the cosmic rays, jumps and NaN stretches near them, to
-``real_wafer_false.ecsv`` (beside the JSON).
+``real_wafer_false.ecsv`` (beside the JSON); with ``--noise-only``, paper mode's false
+detections per seed to ``real_wafer_noise.ecsv`` (the table the drawn-wafer page's ideal row
+reads).
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import sys
 import tempfile
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 
-from astropy.table import vstack
+import numpy as np
+from astropy.table import Table, vstack
 
+from so_transients.campaign.provenance import commit, today
 from so_transients.campaign.real_wafer import (
     CONFIG, PAPER, false_detections, flare_list, run_mode, score, simulate_seed, summary
 )
 
 FALSE_COLUMNS = ("t_obs", "snr_max", "snr_fit", "peak_ratio", "n_dets", "n_fit_dets", "flux",
                  "peak_status", "dt_glitch", "glitch_on_peak", "dt_jump", "dt_peak_jump", "dt_gap")
+
+
+def noise_table(per_seed, site_config, hours, command) -> Table:
+    """Paper mode's noise-only results (``results["paper"]``) as one row per seed: false
+    detections, wafer-band-hours and the largest error scale the fit used."""
+    rows = [dict(seed=int(seed), config=Path(site_config).name, false=int(r["false"]),
+                 hours=hours, error_scale_max=float(np.max(r["error_scale"], initial=np.nan)),
+                 commit=commit()) for seed, r in per_seed.items()]
+    table = Table(rows=rows)
+    table.meta["comments"] = [command, f"commit {commit()}, {today()}; {hours * 60:g} minutes "
+                              "of one f090 wafer-band per seed"]
+    return table
 
 
 def main(argv=None):
@@ -92,6 +109,11 @@ def main(argv=None):
                   f"{r['bright_flux_ratio_worst']:.3f} | {r['bright_offset_max_arcmin']:.2f} | "
                   f"{r['unmatched']} |")
     args.json.write_text(json.dumps(results, indent=1))
+    if args.noise_only and "paper" in results:
+        command = "python studies/real_wafer.py " + " ".join(argv if argv is not None
+                                                               else sys.argv[1:])
+        noise_table(results["paper"], args.site_config, duration / 3600, command).write(
+            args.json.with_name(args.json.stem + "_noise.ecsv"), overwrite=True)
     false = [rows for rows in false if len(rows)]
     false = vstack(false) if false else None
     if false is not None:

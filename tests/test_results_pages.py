@@ -228,3 +228,36 @@ def test_the_null_fit_tail_is_its_tables():
     assert (f"spans {d['inflation_p5']:.2f}-{d['inflation_p95']:.2f} on the drawn wafer (5-95 %), "
             f"against the band's {d['inflation_band']:.2f} that the fit uses; on the ideal "
             f"wafer {i['inflation_p5']:.2f}-{i['inflation_p95']:.2f}") in text
+
+
+def test_the_error_scale_per_scan_direction_is_its_tables():
+    """The drawn-wafer page's error scales per scan direction are the null-fit study's, and
+    its before/after false detections (0.10, then the scale per direction) are the sums of
+    the paired noise-only tables; the issue's bound: drawn wafers at most twice ideal."""
+    page = RESULTS / "drawn_wafers.md"
+    summary = {f"{r['kind']} {r['seed']}": r
+               for r in Table.read(RESULTS / "data" / "null_fit_tail" / "summary.ecsv")}
+    rows = markdown_rows(page, "| wafer | both directions | right-going |")
+    assert sorted(r[0] for r in rows) == sorted(summary)
+    for cells in rows:
+        r = summary[cells[0]]
+        assert cells[1:] == [
+            f"{r['error_scale']:.3f}", f"{r['scale_right']:.3f}", f"{r['scale_left']:.3f}",
+            f"{r['scale_right'] / r['scale_left']:.2f}",
+            f"{r['scan_scale_right_min']:.2f}-{r['scan_scale_right_max']:.2f} "
+            f"({r['n_scans_right']})",
+            f"{r['scan_scale_left_min']:.2f}-{r['scan_scale_left_max']:.2f} "
+            f"({r['n_scans_left']})"], cells[0]
+        assert r["scan_scale_right_min"] > r["scan_scale_left_max"], cells[0]
+    paired = markdown_rows(page, "| the paper config | detectors | table | seeds |")
+    counts = {}
+    for version, detectors, name, seeds, false, hours in paired:
+        table = Table.read(RESULTS / name.strip("`"))
+        assert seeds == f"{min(table['seed'])}-{max(table['seed'])}", name
+        assert [int(false), float(hours)] == [int(np.sum(table["false"])),
+                                              round(float(np.sum(table["hours"])), 2)], name
+        counts[version.split()[0], detectors] = int(false), float(hours)
+    assert set(counts) == {("0.10", "drawn"), ("0.10", "ideal"), ("error", "drawn"),
+                           ("error", "ideal")}
+    (drawn, h_drawn), (ideal, h_ideal) = counts["error", "drawn"], counts["error", "ideal"]
+    assert h_drawn >= 5 and h_ideal >= 5 and drawn / h_drawn <= 2 * ideal / h_ideal

@@ -10,11 +10,11 @@ by about exp(25 e).
 relative to the detectors when the telescope scans with it than against it, so the
 atmosphere left above the matched filter's high-pass, and with it the scale, differs
 between sweeps of increasing azimuth (sotodlib's ``flags.right_scan``, direction +1) and of
-decreasing azimuth (``left_scan``, -1). On 30-minute noise-only simulations of the
-project's real wafer the right-going sweeps' scale was 1.16 times the left-going ones' on
-ideal detectors and 1.25-1.28 times on drawn real wafers, in every one of their 20 scans
-(docs/results/drawn_wafers.md): one scale for both lets the noisier direction's
-fluctuations through at several times the rate of the other. :class:`ErrorScale` holds one
+decreasing azimuth (``left_scan``, -1). On 30 minutes of noise on the project's
+simulated wafer the right-going sweeps' scale was 1.17 times the left-going ones' with ideal
+detectors and 1.25 times on a drawn real wafer, every right-going sweep's above every
+left-going one's (docs/results/drawn_wafers.md): one scale for both lets the noisier
+direction's fluctuations through at several times the rate of the other. :class:`ErrorScale` holds one
 scale per direction, :func:`measure_error_scales` measures both, each on null positions of
 its own direction only.
 
@@ -22,9 +22,9 @@ its own direction only.
 whose flux would widen the spread; it need not avoid the rest of the data at the source's
 time. :class:`Sources` are what the null positions keep clear of: within ``margin`` s of a
 source's time span *and* within ``radius`` of its position. (Excluding whole seconds around
-every candidate that passed the cuts, as before, removed a third of a drawn wafer's
-sweeps, mostly its noisier ones: the scale came out 5 % low there and 2 % low on ideal
-detectors.)
+every candidate that passed the cuts, as before, left out much of a drawn wafer's data,
+and mostly its noisier stretches, where noise candidates are found: the scale came out
+low.)
 """
 from __future__ import annotations
 

@@ -44,14 +44,16 @@ FALSE_COLUMNS = ("t_obs", "snr_max", "snr_fit", "peak_ratio", "n_dets", "n_fit_d
                  "peak_status", "dt_glitch", "glitch_on_peak", "dt_jump", "dt_peak_jump", "dt_gap")
 
 
-def noise_table(per_seed, site_config, hours, command) -> Table:
+def noise_table(per_seed, site_config, hours, command, made_at=None) -> Table:
     """Paper mode's noise-only results (``results["paper"]``) as one row per seed: false
-    detections, wafer-band-hours and the largest error scale the fit used."""
+    detections, wafer-band-hours and the largest error scale the fit used; ``made_at``: the
+    commit that ran (this checkout's by default)."""
+    made_at = made_at or commit()
     rows = [dict(seed=int(seed), config=Path(site_config).name, false=int(r["false"]),
-                 hours=hours, error_scale_max=float(np.max(r["error_scale"], initial=np.nan)),
-                 commit=commit()) for seed, r in per_seed.items()]
+                 hours=hours, error_scale_max=max(r["error_scale"], default=np.nan),
+                 commit=made_at) for seed, r in per_seed.items()]
     table = Table(rows=rows)
-    table.meta["comments"] = [command, f"commit {commit()}, {today()}; {hours * 60:g} minutes "
+    table.meta["comments"] = [command, f"commit {made_at}, {today()}; {hours * 60:g} minutes "
                               "of one f090 wafer-band per seed"]
     return table
 

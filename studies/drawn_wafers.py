@@ -34,7 +34,7 @@ import numpy as np
 from astropy.table import Table
 
 from so_transients.campaign.drawn_wafer import (
-    SHIPPED, config_summaries, drawn_config, drawn_summary, run_shipped
+    SHIPPED, config_summaries, drawn_config, drawn_summary, realization_rows, run_shipped
 )
 from so_transients.campaign.provenance import commit, today
 from so_transients.campaign.real_wafer import (
@@ -138,11 +138,8 @@ def print_markdown(out, noise_only):
     print("| seed | config | 3 Jy found | within 10 %, 0.2' | worst flux ratio | max offset (') "
           "| 900 mJy | unmatched | mislocated | n_eff / used |")
     print("| --- " * 10 + "|")
-    for r in out:
-        print(f"| {r['seed']} | {r['config']} | {r['bright_found']} / {r['bright_crossed']} | "
-              f"{r['bright_good']} | {r['flux_ratio_worst']:.3f} | {r['offset_max_arcmin']:.2f} "
-              f"| {r['faint_found']} / {r['faint_crossed']} | {r['unmatched']} | "
-              f"{r['mislocated']} | {r['n_eff']:.0f} / {r['used']} |")
+    for row in realization_rows(out):
+        print("| " + " | ".join(row) + " |")
 
 
 if __name__ == "__main__":

@@ -40,7 +40,7 @@ from astropy.time import Time
 
 from so_transients.common.angles import ARCMIN, DEG, sky_separation
 from so_transients.common.bands import CENTER_GHZ, FLAVOR_BANDS, HARDWARE_BAND_KEY, nominal_hardware
-from so_transients.common.step_config import positive
+from so_transients.common.step_config import positive, setting
 
 log = logging.getLogger(__name__)
 
@@ -61,17 +61,21 @@ BOOKKEEPING = ("$schema", "alert_datetime", "alert_type", "record_number", "upda
 
 @dataclass
 class AlertsConfig:
-    min_snr: float = 6.0                 # alert events with at least this S/N (joint two-band S/N,
-    #                                      else the brightest detection's)
-    max_far_hz: float | None = None      # and, when set, a false-alarm rate at most this (Hz)
-    match_radius_arcmin: float = 0.5     # an event within this of an earlier alert's position ...
-    max_gap_s: float = 600.0             # ... and its detections within this of the earlier ones
-    #                                      continues that alert
-    injection_radius_arcmin: float = 0.5   # simulations: an event this close to an injected flare
-    injection_pad_s: float = 5.0         # ... within its active window padded by this is an injection
-    wafer_bands: int = 36                # wafer-bands searched at once: an event's far per
-    #                                      wafer-band times this is the instrument's (the LAT:
-    #                                      6 tubes x 3 wafers x 2 bands)
+    min_snr: float = setting(6.0, "", "alert events with at least this S/N (joint two-band S/N, "
+                             "else the brightest detection's)")
+    max_far_hz: float | None = setting(
+        None, "Hz", "and, when set, an instrument-level false-alarm rate at most this")
+    match_radius_arcmin: float = setting(
+        0.5, "arcmin", "an event within this of an earlier alert's position ...")
+    max_gap_s: float = setting(
+        600.0, "s", "... and its detections within this of the earlier ones continues that alert")
+    injection_radius_arcmin: float = setting(
+        0.5, "arcmin", "simulations: an event this close to an injected flare ...")
+    injection_pad_s: float = setting(
+        5.0, "s", "... within its active window padded by this is an injection")
+    wafer_bands: int = setting(
+        36, "", "wafer-bands searched at once: an event's far per wafer-band times this is the "
+        "instrument's (the LAT: 6 tubes x 3 wafers x 2 bands)")
 
     def __post_init__(self):
         positive("alerts", min_snr=self.min_snr, max_far_hz=self.max_far_hz,

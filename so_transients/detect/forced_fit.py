@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from so_transients.common import pointing
+from so_transients.common.step_config import setting
 from so_transients.detect.error_scale import ErrorScale
 from so_transients.detect.fit import (
     FitConfig, FitInputs, fit_fixed_position, fit_window, window_arrays
@@ -27,11 +28,11 @@ from so_transients.detect.fit import (
 
 @dataclass
 class PhotometryConfig:
-    before_s: float = 60.0          # light curve from this long before the first detection ...
-    after_s: float = 60.0           # ... to this long after the last one
-    detect_snr: float = 5.0         # below this fitted S/N a crossing gets an upper limit
-    upper_limit_sigma: float = 3.0  # upper limit: max(flux, 0) + this many flux_err
-    min_dets: int = 3               # a crossing fitted on fewer detectors is not a crossing
+    before_s: float = setting(60.0, "s", "light curve from this long before the first detection ...")
+    after_s: float = setting(60.0, "s", "... to this long after the last one")
+    detect_snr: float = setting(5.0, "", "below this fitted S/N a crossing gets an upper limit")
+    upper_limit_sigma: float = setting(3.0, "", "upper limit: max(flux, 0) + this many flux_err")
+    min_dets: int = setting(3, "", "a crossing fitted on fewer detectors is not a crossing")
 
 
 #: Columns :func:`measure_crossings` returns, one value per crossing.

@@ -19,15 +19,19 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from so_transients.common.angles import ARCMIN, ARCSEC
+from so_transients.common.step_config import setting
 
 
 @dataclass
 class AssociationConfig:
-    n_sigma: float = 5.0              # positions agree within this many combined errors ...
-    min_separation_arcsec: float = 30.0   # ... or this close (pointing systematics)
-    max_separation_arcmin: float = 5.0    # never farther (a poorly measured position)
-    max_gap_s: float = 600.0          # detections of one event at most this far apart in time
-    source_gap_hours: float = 24.0    # events of one source (same position) within this time
+    n_sigma: float = setting(5.0, "", "positions agree within this many combined errors ...")
+    min_separation_arcsec: float = setting(
+        30.0, "arcsec", "... or this close (pointing systematics)")
+    max_separation_arcmin: float = setting(
+        5.0, "arcmin", "never farther (a poorly measured position)")
+    max_gap_s: float = setting(600.0, "s", "detections of one event at most this far apart in time")
+    source_gap_hours: float = setting(
+        24.0, "h", "events of one source (same position) within this time")
 
     @property
     def min_separation(self):

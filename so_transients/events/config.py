@@ -22,7 +22,7 @@ error scale, and the scan-speed tolerance, are the site config's own ``transient
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import yaml
@@ -33,24 +33,29 @@ from so_transients.detect.fit import FitConfig
 from so_transients.detect.forced_fit import PhotometryConfig
 from so_transients.events.lightcurve_fit import FlareFitConfig
 from so_transients.site.pipeline import archive_index, read_config
-from so_transients.common.step_config import ConfigError, from_yaml
+from so_transients.common.step_config import ConfigError, from_yaml, setting
 from so_transients.preprocess.step_settings import step_setting
 from so_transients.sources.crossmatch import CrossmatchConfig
 
 
 @dataclass
 class EventsConfig:
-    preprocess: Path
-    output: Path
-    nproc: int = 1
-    association: AssociationConfig = field(default_factory=AssociationConfig)
-    photometry: PhotometryConfig = field(default_factory=PhotometryConfig)
-    lightcurve_fit: FlareFitConfig = field(default_factory=FlareFitConfig)
-    spectral_min_snr: float = 3.0
-    catalogue: str | None = None        # known sources the events are cross-matched with: a
-    #                                     socat URL (socat:, socat:///path/socat.db, sqlite:///...,
-    #                                     postgresql://...) or an ECSV/CSV file; None: no cross-match
-    crossmatch: CrossmatchConfig = field(default_factory=CrossmatchConfig)
+    preprocess: Path = setting(unit="", doc="the site config whose archive is read")
+    output: Path = setting(unit="", doc="the events folder (default: <archive folder>/../events)")
+    nproc: int = setting(1, "", "worker processes")
+    association: AssociationConfig = setting(
+        default_factory=AssociationConfig, doc="detections into events and events into sources")
+    photometry: PhotometryConfig = setting(
+        default_factory=PhotometryConfig, doc="forced photometry: the light curves")
+    lightcurve_fit: FlareFitConfig = setting(
+        default_factory=FlareFitConfig, doc="the flare model fitted to each light curve")
+    spectral_min_snr: float = setting(3.0, "", "crossings at this S/N or more give spectral indices")
+    catalogue: str | None = setting(
+        None, "", "known sources the events are cross-matched with: a socat URL (socat:, "
+        "socat:///path/socat.db, sqlite:///..., postgresql://...) or an ECSV/CSV file; "
+        "None: no cross-match")
+    crossmatch: CrossmatchConfig = setting(
+        default_factory=CrossmatchConfig, doc="the cross-match's radii and flare ratio")
 
     @property
     def site(self) -> dict:

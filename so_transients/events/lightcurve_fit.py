@@ -16,6 +16,7 @@ from scipy.optimize import least_squares
 
 from so_transients.common.bands import CENTER_GHZ
 from so_transients.common.flare_model import flare_flux
+from so_transients.common.step_config import setting
 
 #: Parameters of eq. 1 in the order :func:`fit_flare` reports them.
 FLARE_PARAMS = ("s_peak", "t_peak", "t_rise", "t_decay", "eta_rise", "eta_decay")
@@ -23,11 +24,11 @@ FLARE_PARAMS = ("s_peak", "t_peak", "t_rise", "t_decay", "eta_rise", "eta_decay"
 
 @dataclass
 class FlareFitConfig:
-    fit_indices: bool = False     # fit eta_rise and eta_decay too (else held at eta)
-    eta: float = 1.0              # the indices when they are held (the paper's flares: 1)
-    min_points: int = 4           # fewer light-curve points: no fit
-    min_time_s: float = 0.05      # bounds of the rise and decay times
-    max_time_s: float = 3600.0
+    fit_indices: bool = setting(False, "", "fit eta_rise and eta_decay too (else held at eta)")
+    eta: float = setting(1.0, "", "the indices when they are held (the paper's flares: 1)")
+    min_points: int = setting(4, "", "fewer light-curve points: no fit")
+    min_time_s: float = setting(0.05, "s", "the rise and decay times at least this ...")
+    max_time_s: float = setting(3600.0, "s", "... and at most this")
 
 
 def _model(p, t, cfg):

@@ -24,7 +24,7 @@ import numpy as np
 
 from so_transients.common.angles import ARCMIN, sky_separation
 from so_transients.common.sky_match import nearest_on_sky
-from so_transients.common.step_config import positive
+from so_transients.common.step_config import positive, setting
 from so_transients.sources.catalog import Catalogue, Ephemerides
 
 CLASSES = ("catalogued_flare", "catalogued", "solar_system", "new")
@@ -32,11 +32,12 @@ CLASSES = ("catalogued_flare", "catalogued", "solar_system", "new")
 
 @dataclass
 class CrossmatchConfig:
-    radius_per_jy_arcmin: float = 30.0   # match radius per Jy of measured flux (sotrplib's sifter)
-    min_radius_arcmin: float = 1.5       # match radius at least this (a faint source)
-    max_radius_arcmin: float = 120.0     # match radius at most this
-    flare_ratio: float = 5.0             # measured / catalogued flux above this: a catalogued
-    #                                      source flaring
+    radius_per_jy_arcmin: float = setting(
+        30.0, "arcmin", "match radius per Jy of measured flux (sotrplib's sifter)")
+    min_radius_arcmin: float = setting(1.5, "arcmin", "match radius at least this (a faint source)")
+    max_radius_arcmin: float = setting(120.0, "arcmin", "match radius at most this")
+    flare_ratio: float = setting(
+        5.0, "", "measured / catalogued flux above this: a catalogued source flaring")
 
     def __post_init__(self):
         positive("crossmatch", radius_per_jy_arcmin=self.radius_per_jy_arcmin,

@@ -267,3 +267,42 @@ def test_the_error_scale_per_scan_direction_is_its_tables():
                            ("error", "ideal")}
     (drawn, h_drawn), (ideal, h_ideal) = counts["error", "drawn"], counts["error", "ideal"]
     assert h_drawn >= 5 and h_ideal >= 5 and drawn / h_drawn <= 2 * ideal / h_ideal
+
+
+def test_the_joint_bands_page_is_its_tables():
+    """The joint-band page's backgrounds (threshold, slide hours, the data's maxima above it)
+    and its 90 % thresholds of both searches, with their ratio and the averages the text
+    quotes, are studies/joint_bands.py's tables."""
+    page = RESULTS / "joint_bands.md"
+    text = " ".join(page.read_text().split())
+    data = RESULTS / "data" / "joint_bands"
+    backgrounds = Table.read(data / "backgrounds.ecsv")
+    rows = markdown_rows(page, "| search | statistic | rate | threshold |")
+    assert len(rows) == len(backgrounds) == 3
+    for cells, row in zip(rows, backgrounds):
+        unit = "wafer-hour" if row["search"] == "joint" else "wafer-band-hour"
+        assert cells[2] == f"{row['rate']:.2f} per {unit}", cells
+        assert cells[3:] == [f"{row['threshold']:.2f}", f"{row['slide_hours']:.1f}",
+                             str(row["n_data_above"])], cells
+        assert cells[1] == ("J, indices -1, 0, 1, 2, 3" if row["search"] == "joint"
+                            else f"Z of {row['bands']}"), cells
+    thresholds = Table.read(data / "thresholds.ecsv")
+    s90 = {(float(r["t_rise"]), float(r["spectral_index"]), str(r["search"])): r
+           for r in thresholds}
+    rows = markdown_rows(page, "| t_r (s) | index | S90 both bands jointly (mJy) |")
+    assert len(rows) == len(thresholds) // 2
+    ratios = {}                                  # the joint threshold over the single bands'
+    for t_r, index, joint, alone, ratio in rows:
+        key = (float(t_r), float(index))
+        j, a = s90[key + ("joint",)], s90[key + ("single",)]
+        assert joint == f"{round(j['s90'])} ± {round(j['s90_err'])}", (t_r, index)
+        assert alone == f"{round(a['s90'])} ± {round(a['s90_err'])}", (t_r, index)
+        ratios.setdefault(float(index), []).append(j["s90"] / a["s90"])
+        assert ratio == f"{a['s90'] / j['s90']:.2f}", (t_r, index)
+    for index, name in ((0.0, "index 0"), (2.0, "+2"), (-1.0, "-1")):
+        change = round(100 * (np.mean(ratios[index]) - 1))
+        word = "higher" if change > 0 else "lower"
+        said = f"the same at {name}" if change == 0 else f"{abs(change)} % {word} at {name}"
+        assert said in text, (index, change)
+    changes = [round(100 * (np.mean(r) - 1)) for r in ratios.values()]
+    assert f"its thresholds are {max(min(changes), 0)}-{max(changes)} % higher on average" in text

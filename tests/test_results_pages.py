@@ -299,10 +299,11 @@ def test_the_joint_bands_page_is_its_tables():
         assert alone == f"{round(a['s90'])} ± {round(a['s90_err'])}", (t_r, index)
         ratios.setdefault(float(index), []).append(j["s90"] / a["s90"])
         assert ratio == f"{a['s90'] / j['s90']:.2f}", (t_r, index)
+    changes = {index: round(100 * (np.mean(r) - 1)) for index, r in ratios.items()}  # per cent
     for index, name in ((0.0, "index 0"), (2.0, "+2"), (-1.0, "-1")):
-        change = round(100 * (np.mean(ratios[index]) - 1))
+        change = changes[index]
         word = "higher" if change > 0 else "lower"
         said = f"the same at {name}" if change == 0 else f"{abs(change)} % {word} at {name}"
         assert said in text, (index, change)
-    changes = [round(100 * (np.mean(r) - 1)) for r in ratios.values()]
-    assert f"its thresholds are {max(min(changes), 0)}-{max(changes)} % higher on average" in text
+    low, high = max(min(changes.values()), 0), max(changes.values())
+    assert f"its thresholds are {low}-{high} % higher on average" in text

@@ -20,6 +20,7 @@ from typing import Any
 import yaml
 
 from so_transients.common.bands import HARDWARE_BAND_KEY, PAPER_KNEE_HZ, WHITE_NOISE_MJY
+from so_transients.common.step_config import setting
 from so_transients.sim.scan import ScanPattern
 
 
@@ -75,10 +76,10 @@ def _check_type(name, value, annotation):
 
 @dataclass
 class ObservationConfig:
-    start: float = 1_700_000_000.0   # ctime of the first observation
-    duration: float = 900.0          # seconds per observation
-    n_obs: int = 1                   # consecutive observations per tube
-    gap: float = 60.0                # seconds between consecutive observations
+    start: float = setting(1_700_000_000.0, "ctime", "start of the first observation")
+    duration: float = setting(900.0, "s", "length of each observation")
+    n_obs: int = setting(1, "", "consecutive observations (time blocks) per tube")
+    gap: float = setting(60.0, "s", "time between consecutive observations")
 
     def __post_init__(self):
         if self.duration <= 0 or self.n_obs < 1 or self.gap < 0:
@@ -87,9 +88,10 @@ class ObservationConfig:
 
 @dataclass
 class InstrumentConfig:
-    tubes: list = field(default_factory=lambda: ["i1"])
-    wafers: list | None = field(default_factory=lambda: ["w16"])  # None: all wafers of the tubes
-    bands: list | None = None                                      # None: both bands of each tube
+    tubes: list = setting(unit="", doc="LAT tube slots simulated", default_factory=lambda: ["i1"])
+    wafers: list | None = setting(unit="", doc="wafers of those tubes; None: every wafer",
+                                  default_factory=lambda: ["w16"])
+    bands: list | None = setting(None, "", "bands simulated; None: both bands of each tube")
 
     def __post_init__(self):
         if not self.tubes:
@@ -111,12 +113,14 @@ def _check_fraction(name, value):
 
 @dataclass
 class NoiseConfig:
-    enabled: bool = True
-    white_mjy: dict = field(default_factory=lambda: dict(WHITE_NOISE_MJY))
-    white_scatter: float = 0.0      # log-normal sigma of each detector's white-noise level
-    fknee: Any = None               # Hz, each detector's own 1/f knee: a value or a [low, high]
-                                    # log-uniform range; None: no per-detector 1/f
-    alpha: float = 1.0              # slope of the per-detector 1/f
+    enabled: bool = setting(True, "", "white and per-detector 1/f noise simulated")
+    white_mjy: dict = setting(unit="mJy", doc="white-noise rms per sample, by band",
+                              default_factory=lambda: dict(WHITE_NOISE_MJY))
+    white_scatter: float = setting(0.0, "", "log-normal sigma of each detector's white-noise "
+                                   "level (0: all equal)")
+    fknee: Any = setting(None, "Hz", "each detector's own 1/f knee: a value or a [low, high] "
+                         "log-uniform range; None: no per-detector 1/f")
+    alpha: float = setting(1.0, "", "slope of the per-detector 1/f: P = P_white (fknee / f)^alpha")
 
     def __post_init__(self):
         if self.fknee is not None:
@@ -127,32 +131,38 @@ class NoiseConfig:
 
 @dataclass
 class AtmosphereConfig:
-    enabled: bool = True
-    altitude: float = 1500.0        # m, height of the frozen turbulent layer
-    outer_scale: float = 500.0      # m, Kolmogorov outer scale
-    wind_speed: float = 8.0         # m/s
-    wind_direction: float = 30.0    # deg, direction the layer moves to, from +x (east) to +y
-    aperture: float = 6.0           # m, diameter of the near-field beam (the LAT primary)
-    pixel: float = 2.0              # m, screen resolution
-    fknee: dict = field(default_factory=lambda: {b: PAPER_KNEE_HZ for b in WHITE_NOISE_MJY})
+    enabled: bool = setting(True, "", "a frozen turbulent atmosphere simulated")
+    altitude: float = setting(1500.0, "m", "height of the frozen turbulent layer")
+    outer_scale: float = setting(500.0, "m", "Kolmogorov outer scale")
+    wind_speed: float = setting(8.0, "m/s", "speed of the layer")
+    wind_direction: float = setting(30.0, "deg", "direction the layer moves to, from east "
+                                    "towards north")
+    aperture: float = setting(6.0, "m", "diameter of the near-field beam (the LAT primary)")
+    pixel: float = setting(2.0, "m", "resolution of the screen")
+    fknee: dict = setting(unit="Hz", doc="knee where the atmosphere's power is the white "
+                          "noise's, by band",
+                          default_factory=lambda: {b: PAPER_KNEE_HZ for b in WHITE_NOISE_MJY})
 
 
 @dataclass
 class CmbConfig:
-    enabled: bool = True
-    resolution_arcmin: float = 1.0
+    enabled: bool = setting(True, "", "a CMB sky simulated")
+    resolution_arcmin: float = setting(1.0, "arcmin", "pixel size of the CMB map")
 
 
 @dataclass
 class FlareConfig:
-    n: int = 0
-    s_peak_mjy: Any = (300.0, 3000.0)   # a value or a [low, high] log-uniform range
-    t_rise: Any = (0.5, 30.0)           # seconds, value or log-uniform range
-    t_decay: Any = None                 # None: equal to t_rise
-    eta_rise: float = 1.0
-    eta_decay: float = 1.0
-    spectral_index: float = 0.0         # S ~ nu^alpha; s_peak_mjy is at 93 GHz (f090)
-    list: list = field(default_factory=list)  # explicit flares, see configs/sim_default.yaml
+    n: int = setting(0, "", "random flares, besides those listed")
+    s_peak_mjy: Any = setting((300.0, 3000.0), "mJy", "peak flux at 93 GHz: a value or a "
+                              "[low, high] log-uniform range")
+    t_rise: Any = setting((0.5, 30.0), "s", "rise time: a value or a [low, high] log-uniform "
+                          "range")
+    t_decay: Any = setting(None, "s", "decay time, as t_rise; None: equal to the rise time")
+    eta_rise: float = setting(1.0, "", "shape exponent of the rise (the paper's eq. 1)")
+    eta_decay: float = setting(1.0, "", "shape exponent of the decay (the paper's eq. 1)")
+    spectral_index: float = setting(0.0, "", "alpha of S ~ nu^alpha; s_peak_mjy is at 93 GHz")
+    list: list = setting(unit="", doc="explicit flares (configs/sim_default.yaml)",
+                         default_factory=list)
 
     def __post_init__(self):
         self.s_peak_mjy = _check_range("flares.s_peak_mjy", self.s_peak_mjy)
@@ -165,9 +175,11 @@ class FlareConfig:
 
 @dataclass
 class PointSourceConfig:
-    n: int = 0
-    flux_mjy: Any = (500.0, 5000.0)
-    list: list = field(default_factory=list)
+    n: int = setting(0, "", "random steady sources, besides those listed")
+    flux_mjy: Any = setting((500.0, 5000.0), "mJy", "flux: a value or a [low, high] "
+                            "log-uniform range")
+    list: list = setting(unit="", doc="explicit sources (configs/sim_default.yaml)",
+                         default_factory=list)
 
     def __post_init__(self):
         self.flux_mjy = _check_range("point_sources.flux_mjy", self.flux_mjy)
@@ -175,11 +187,13 @@ class PointSourceConfig:
 
 @dataclass
 class GlitchConfig:
-    enabled: bool = False
-    rate_per_hour: float = 30.0          # events per wafer per hour
-    n_dets: Any = (5, 60)                # detectors hit per event (both bands of the wafer)
-    amplitude_mjy: Any = (3000.0, 30000.0)
-    time_constant: float = 0.004         # s, exponential decay of each spike
+    enabled: bool = setting(False, "", "cosmic-ray glitches simulated")
+    rate_per_hour: float = setting(30.0, "1/h", "events per wafer per hour")
+    n_dets: Any = setting((5, 60), "", "detectors hit per event (both bands of the wafer): a "
+                          "value or a [low, high] range")
+    amplitude_mjy: Any = setting((3000.0, 30000.0), "mJy", "spike height: a value or a "
+                                 "[low, high] range")
+    time_constant: float = setting(0.004, "s", "exponential decay of each spike")
 
     def __post_init__(self):
         self.n_dets = [int(v) for v in _check_range("glitches.n_dets", self.n_dets)]
@@ -188,15 +202,19 @@ class GlitchConfig:
 
 @dataclass
 class DetectorYieldConfig:
-    dead_fraction: float = 0.0      # of the detectors of each wafer and band
-    dead_mode: str = "zeros"        # what a dead detector records: zeros, nan or constant
-    dead_value: float = 0.0         # mJy, with dead_mode: constant
-    noisy_fraction: float = 0.0     # of the detectors of each wafer and band (never dead ones)
-    noisy_factor: float = 10.0      # their noise (white and 1/f) over their normal level
-    dead_noise: float = 0.0         # readout noise a dead detector still records, over the band's
-    #                                 white-noise level (0: none); with dead_mode zeros or constant
-    lost_detectors: int = 0         # detectors of each wafer and band that record only NaN (a lost
-    #                                 readout channel), drawn independently of dead and noisy ones
+    dead_fraction: float = setting(0.0, "", "fraction of each wafer-band's detectors that "
+                                   "are dead")
+    dead_mode: str = setting("zeros", "", "what a dead detector records: zeros, nan or constant")
+    dead_value: float = setting(0.0, "mJy", "what it records with dead_mode: constant")
+    noisy_fraction: float = setting(0.0, "", "fraction of each wafer-band's detectors that are "
+                                    "noisy (never dead ones)")
+    noisy_factor: float = setting(10.0, "", "their noise (white and 1/f) over their normal level")
+    dead_noise: float = setting(0.0, "", "readout noise a dead detector still records, over the "
+                                "band's white-noise level (0: none); with dead_mode zeros or "
+                                "constant")
+    lost_detectors: int = setting(0, "", "detectors of each wafer and band that record only NaN "
+                                  "(a lost readout channel), drawn independently of dead and "
+                                  "noisy ones")
 
     def __post_init__(self):
         _check_fraction("detector_yield.dead_fraction", self.dead_fraction)
@@ -212,8 +230,10 @@ class DetectorYieldConfig:
 
 @dataclass
 class CalibrationConfig:
-    scatter: float = 0.0            # rms of each detector's true sky response over its metadata
-    distribution: str = "lognormal" # lognormal: exp(N(0, scatter)); gaussian: 1 + N(0, scatter)
+    scatter: float = setting(0.0, "", "rms of each detector's true sky response over its "
+                             "metadata's")
+    distribution: str = setting("lognormal", "", "lognormal: exp(N(0, scatter)); gaussian: "
+                                "1 + N(0, scatter)")
 
     def __post_init__(self):
         _check_choice("calibration.distribution", self.distribution, ("lognormal", "gaussian"))
@@ -223,10 +243,11 @@ class CalibrationConfig:
 
 @dataclass
 class TimeConstantConfig:
-    tau_ms: Any = None              # None: instantaneous detectors; a value or [low, high]
-                                    # log-uniform range, or {band: value or range}
-    metadata_error: float = 0.0     # rms fractional error of det_cal's tau_eff (Gaussian)
-    metadata_nan: float = 0.0       # fraction of detectors whose det_cal tau_eff is NaN
+    tau_ms: Any = setting(None, "ms", "detector time constant: a value, a [low, high] "
+                          "log-uniform range, or {band: value or range}; None: instantaneous")
+    metadata_error: float = setting(0.0, "", "rms fractional error of det_cal's tau_eff "
+                                    "(Gaussian)")
+    metadata_nan: float = setting(0.0, "", "fraction of detectors whose det_cal tau_eff is NaN")
 
     def __post_init__(self):
         if isinstance(self.tau_ms, dict):
@@ -250,7 +271,8 @@ class TimeConstantConfig:
 
 @dataclass
 class FocalPlaneErrorConfig:
-    sigma_arcsec: float = 0.0       # Gaussian error of the metadata xi and of eta (each axis)
+    sigma_arcsec: float = setting(0.0, "arcsec", "Gaussian error of the metadata xi and of "
+                                  "eta (each axis)")
 
     def __post_init__(self):
         if self.sigma_arcsec < 0:
@@ -259,13 +281,14 @@ class FocalPlaneErrorConfig:
 
 @dataclass
 class JumpConfig:
-    rate_per_hour: float = 0.0      # readout jumps per detector per hour
-    fraction: float = 0.0           # of each wafer-band's detectors (dead ones included) with
-    #                                 ``count`` more jumps each, at random times
-    count: Any = 1                  # jumps each of those detectors gets: a value or [low, high]
-    #                                 (uniform integers)
-    height: Any = (5.0, 50.0)       # size: a value or [low, high] log-uniform; random sign
-    units: str = "white"            # white: the detector's white-noise rms per sample; mjy
+    rate_per_hour: float = setting(0.0, "1/h", "readout jumps per detector per hour")
+    fraction: float = setting(0.0, "", "fraction of each wafer-band's detectors (dead ones "
+                              "included) with ``count`` more jumps each, at random times")
+    count: Any = setting(1, "", "jumps each of those detectors gets: a value or [low, high] "
+                         "(uniform integers)")
+    height: Any = setting((5.0, 50.0), "", "size in ``units``: a value or [low, high] "
+                          "log-uniform; random sign")
+    units: str = setting("white", "", "white: the detector's white-noise rms per sample; mjy")
 
     def __post_init__(self):
         self.height = _check_range("jumps.height", self.height)
@@ -284,9 +307,9 @@ class JumpConfig:
 
 @dataclass
 class GapConfig:
-    rate_per_hour: float = 0.0      # NaN stretches per wafer and band per hour, each on one
-    #                                 detector drawn at random (dead ones included)
-    duration: Any = (0.5, 5.0)      # s: a value or [low, high] log-uniform
+    rate_per_hour: float = setting(0.0, "1/h", "NaN stretches per wafer and band per hour, "
+                                   "each on one detector drawn at random (dead ones included)")
+    duration: Any = setting((0.5, 5.0), "s", "their length: a value or [low, high] log-uniform")
 
     def __post_init__(self):
         self.duration = _check_range("gaps.duration", self.duration)
@@ -296,7 +319,8 @@ class GapConfig:
 
 @dataclass
 class MovingSourceConfig:
-    list: list = field(default_factory=list)  # see configs/sim_default.yaml
+    list: list = setting(unit="", doc="the moving sources (configs/sim_default.yaml)",
+                         default_factory=list)
 
 
 SECTIONS = {
@@ -311,8 +335,8 @@ SECTIONS = {
 
 @dataclass
 class SimConfig:
-    seed: int = 0
-    output: str = "data/sim"
+    seed: int = setting(0, "", "one integer fixes every random draw")
+    output: str = setting("data/sim", "", "dataset folder")
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     instrument: InstrumentConfig = field(default_factory=InstrumentConfig)
     scan: ScanPattern = field(default_factory=ScanPattern)

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from so_transients.common.angles import DEG
+from so_transients.common.step_config import setting
 
 
 
@@ -19,11 +20,11 @@ from so_transients.common.angles import DEG
 class ScanPattern:
     """Parameters of a CES. Angles in degrees, speeds in deg/s, times in seconds."""
 
-    el: float = 50.0
-    az_center: float = 180.0
-    sky_speed: float = 1.0
-    accel: float = 1.0
-    sweep_time: float = 90.0
+    el: float = setting(50.0, "deg", "elevation of the scan")
+    az_center: float = setting(180.0, "deg", "azimuth at the middle of the throw")
+    sky_speed: float = setting(1.0, "deg/s", "scan speed on the sky (azimuth speed x cos(el))")
+    accel: float = setting(1.0, "deg/s^2", "azimuthal acceleration in the turnarounds")
+    sweep_time: float = setting(90.0, "s", "one constant-velocity segment plus one turnaround")
 
     def __post_init__(self):
         if not 0 < self.el < 90:

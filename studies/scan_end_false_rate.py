@@ -1,6 +1,7 @@
 """What searching up to the turnarounds costs in false detections, on a campaign's noise.
 
-    python studies/scan_end_false_rate.py studies/configs/campaign_paper_mf.yaml [-o OUTPUT] [--buffer 3]
+    python studies/scan_end_false_rate.py studies/configs/campaign_paper_mf.yaml [-o OUTPUT] [--buffer 3] \
+        [--table docs/results/data/scan_end_false_rate.ecsv]
 
 After the campaign has run: for every prepared noise-only group in its output folder, runs the
 campaign's search
@@ -9,16 +10,20 @@ the scan speed searched, ``turnaround_buffer: 0``), and with ``turnaround_buffer
 seconds (3 s reproduces the earlier search, which skipped sotodlib's 1 s flag buffer and 2 s
 more). The second search covers a subset of the first's samples on the same data, so the
 difference is the cost of the scan ends. Prints, per band, the fitted candidates at S/N >= 3,
-4 and 5 (5 = detections) per wafer-band-hour with Poisson errors.
+4 and 5 (5 = detections) per wafer-band-hour with Poisson errors, and writes the counts to
+``--table`` (ECSV: band, wafer-band-hours, level, candidates now and with the buffer).
 """
 import argparse
 import copy
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
+from astropy.table import Table
 
 from so_transients.campaign.config import load_campaign
+from so_transients.campaign.provenance import commit, today
 from so_transients.campaign.noise import Group, GroupState
 from so_transients.campaign.search_steps import SearchSteps
 
@@ -53,6 +58,8 @@ def main():
     parser.add_argument("-o", "--out", help="its output folder (default: the config's)")
     parser.add_argument("--buffer", type=float, default=3.0,
                         help="turnaround_buffer (s) of the comparison search")
+    parser.add_argument("--table", default="scan_end_false_rate.ecsv",
+                        help="the counts as an ECSV table (default: %(default)s)")
     args = parser.parse_args()
     cfg = load_campaign(args.config, {"output": args.out})
     _, search = cfg.pipeline_steps()
@@ -78,6 +85,23 @@ def main():
                  for n, b in zip(e["now"], e["before"])]
         ratio = e["now"][0] / max(e["before"][0], 1)
         print(f"| {band} | {e['hours']:.1f} | " + " | ".join(cells) + f" | {ratio:.3f} |")
+    write_table(rows, args)
+
+
+def write_table(rows, args):
+    """One row per band and S/N level: the wafer-band-hours searched and the fitted
+    candidates at or above the level, searched up to the turnarounds and with the buffer."""
+    table = Table(rows=[(band, e["hours"], level, int(now), int(before))
+                        for band, e in sorted(rows.items())
+                        for level, now, before in zip(LEVELS, e["now"], e["before"])],
+                  names=("band", "wafer_band_hours", "snr_fit_min", "now", "buffer"))
+    table.meta["comments"] = [
+        f"{Path(sys.argv[0]).name} {args.config}, --buffer {args.buffer:g}",
+        "noise-only data and their sign-inverted copy; now: turnaround_buffer 0 (as shipped), "
+        f"buffer: turnaround_buffer {args.buffer:g} s",
+        f"commit {commit()}, {today()}"]
+    table.write(args.table, format="ascii.ecsv", overwrite=True)
+    print(f"wrote {args.table}")
 
 
 if __name__ == "__main__":

@@ -307,3 +307,60 @@ def test_the_joint_bands_page_is_its_tables():
         assert said in text, (index, change)
     low, high = max(min(changes.values()), 0), max(changes.values())
     assert f"its thresholds are {low}-{high} % higher on average" in text
+
+
+def test_the_scan_ends_page_is_its_tables():
+    """The scan-ends page's efficiencies (both modes, every rise time), its flares near the
+    turnarounds and its false detections with and without the turnaround buffer are the
+    committed tables', and the paper mode meets its target (Jeffreys 68 % lower limit of
+    98 % in every cell)."""
+    page = RESULTS / "scan_ends.md"
+    text = " ".join(page.read_text().split())
+    data = RESULTS / "data" / "scan_ends"
+    modes = ("paper", "coherent")
+    efficiency = {m: Table.read(data / f"{m}_efficiency.ecsv") for m in modes}
+    header, *body = markdown_rows(page, "| t_r (s) |", after="## Every rise time", header=True)
+    columns = [(c.split(", ")[0], c.split(", ")[1].split()[0]) for c in header[1:]]
+    assert sorted(columns) == sorted((b, m) for b in ("f090", "f150") for m in modes)
+    cells_checked = 0
+    for cells in body:
+        for (band, mode), cell in zip(columns, cells[1:]):
+            eff = efficiency[mode]
+            row = eff[(eff["band"] == band) & (eff["t_rise"] == float(cells[0]))][0]
+            assert cell == f"{row['detected']} of {row['injected']}", (band, mode, cells[0])
+            cells_checked += 1
+    assert cells_checked == sum(len(t) for t in efficiency.values())
+    for mode, table in efficiency.items():
+        for band in ("f090", "f150"):
+            mine = table[table["band"] == band]
+            said = (f"{mode} mode {band}: {int(mine['detected'].sum()):,} of "
+                    f"{int(mine['injected'].sum()):,}, Jeffreys 68 % lower limit "
+                    f"≥ {np.floor(1000 * mine['eff_lo'].min()) / 10:.1f} % in every cell")
+            assert said in text, said
+    assert (efficiency["paper"]["eff_lo"] >= 0.98).all()
+    near = markdown_rows(page, "| mode | within 0.5 s of a turnaround |")
+    assert [r[0] for r in near] == ["paper", "coherent"]
+    for mode, *cells in near:
+        flares = Table.read(data / f"{mode}_flares.ecsv")
+        expect = []
+        for limit in (0.5, 1.0, 2.0, np.inf):
+            sel = flares["to_turnaround"] <= limit
+            expect.append(f"{int(flares['detected'][sel].sum()):,} of {int(sel.sum()):,}")
+        assert cells == expect, mode
+    false = Table.read(data / "false_rate.ecsv")
+    rows = markdown_rows(page, "| band | wafer-band-hours | detections (fitted S/N ≥ 5) now")
+    assert [r[0] for r in rows] == sorted(set(false["band"]))
+    for band, hours, *cells in rows:
+        mine = {float(r["snr_fit_min"]): r for r in false[false["band"] == band]}
+        assert float(hours) == round(float(mine[5.0]["wafer_band_hours"]), 1), band
+        for level, cell in zip((5.0, 4.0, 3.0), cells):
+            now, before = int(mine[level]["now"]), int(mine[level]["buffer"])
+            assert cell.split(" (")[0] == f"{now} / {before}", (band, level)
+        assert cells[2].endswith(f"({100 * (now / before - 1):+.0f} %)"), band
+    coherent = Table.read(data / "coherent_flares.ecsv")
+    worst = coherent[(coherent["band"] == "f150") & (coherent["t_rise"] == 0.5)
+                     & ~coherent["detected"]]
+    assert (f"its {len(worst)} misses peak {worst['to_turnaround'].min():.1f}-"
+            f"{worst['to_turnaround'].max():.1f} s from the nearest turnaround") in text
+    check = Table.read(data / "coherent_full_check.ecsv")
+    assert_check_rows_are(markdown_rows(page, CHECK_HEADER), check)

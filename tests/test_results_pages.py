@@ -364,3 +364,24 @@ def test_the_scan_ends_page_is_its_tables():
             f"{worst['to_turnaround'].max():.1f} s from the nearest turnaround") in text
     check = Table.read(data / "coherent_full_check.ecsv")
     assert_check_rows_are(markdown_rows(page, CHECK_HEADER), check)
+
+
+def test_each_results_page_says_where_its_figures_come_from():
+    """Every results page names its tables in its header: committed tables that exist and
+    that a test of this module reads, or ``not kept``; the index says the same of each."""
+    this = Path(__file__).read_text()
+    index = markdown_rows(RESULTS / "index.md", "| page | what it holds |")
+    assert {r[0].split("](")[1].rstrip(")") for r in index} == \
+        {p.name for p in RESULTS.glob("*.md")} - {"index.md"}
+    for cells in index:
+        name = cells[0].split("](")[1].rstrip(")")
+        page = RESULTS / name
+        header = markdown_rows(page, "| | |")
+        tables = [c[1] for c in header if c[0] == "tables"]
+        assert len(tables) == 1, name
+        kept = not tables[0].startswith("not kept")
+        assert kept == ("not kept" not in cells[2]), name
+        if kept:
+            assert f'"{name}"' in this, f"no test reads {name}"
+            for link in re.findall(r"\]\((data/[^)]+)\)", tables[0]):
+                assert (RESULTS / link).exists(), (name, link)

@@ -1,7 +1,7 @@
 """What searching up to the turnarounds costs in false detections, on a campaign's noise.
 
     python studies/scan_end_false_rate.py studies/configs/campaign_paper_mf.yaml [-o OUTPUT] [--buffer 3] \
-        [--table docs/results/data/scan_end_false_rate.ecsv]
+        [--table docs/results/data/scan_ends/false_rate.ecsv]
 
 After the campaign has run: for every prepared noise-only group in its output folder, runs the
 campaign's search

@@ -17,7 +17,8 @@ for ideal detectors) it counts the false detections per wafer-band-hour instead.
 ``--site-config`` runs paper mode with another site config (a copy of the shipped one with a
 setting changed). Prints a Markdown table per mode and writes ``real_wafer.json``, and the
 detections no flare explains, with the cosmic rays, jumps and NaN stretches near them, to
-``real_wafer_false.ecsv`` (beside the JSON); with ``--noise-only``, paper mode's false
+``real_wafer_false.ecsv`` (beside the JSON), and every mode's results per seed to
+``real_wafer_seeds.ecsv``; with ``--noise-only``, paper mode's false
 detections per seed to ``real_wafer_noise.ecsv`` (the table the drawn-wafer page's ideal row
 reads).
 """
@@ -52,6 +53,34 @@ def noise_table(per_seed, site_config, hours, command, made_at=None) -> Table:
     rows = [dict(seed=int(seed), config=Path(site_config).name, false=int(r["false"]),
                  hours=hours, error_scale_max=max(r["error_scale"], default=np.nan),
                  commit=made_at) for seed, r in per_seed.items()]
+    table = Table(rows=rows)
+    table.meta["comments"] = [command, f"commit {made_at}, {today()}; {hours * 60:g} minutes "
+                              "of one f090 wafer-band per seed"]
+    return table
+
+
+def seed_table(results, noise_only, hours, command, made_at=None) -> Table:
+    """Every mode's results as one row per mode and seed: with flares, the 3 Jy and 900 mJy
+    flares crossed, found and found more than once, the 3 Jy flux ratios (median, worst), the
+    largest 3 Jy offset (arcmin) and the unmatched detections; noise only, the false
+    detections; both with the wafer-band-hours and the largest error scale the fit used."""
+    made_at = made_at or commit()
+    rows = []
+    for mode, per_seed in results.items():
+        for seed, r in per_seed.items():
+            row = dict(mode=mode, seed=int(seed), hours=hours,
+                       error_scale_max=max(r["error_scale"], default=np.nan))
+            if noise_only:
+                row["false"] = int(r["false"])
+            else:
+                for name in ("bright", "faint"):
+                    row.update({f"{name}_{k}": int(r[name][k])
+                                for k in ("crossed", "found", "twice")})
+                row.update(flux_ratio_median=r["bright_flux_ratio_median"],
+                           flux_ratio_worst=r["bright_flux_ratio_worst"],
+                           offset_max_arcmin=r["bright_offset_max_arcmin"],
+                           unmatched=int(r["unmatched"]))
+            rows.append(row)
     table = Table(rows=rows)
     table.meta["comments"] = [command, f"commit {made_at}, {today()}; {hours * 60:g} minutes "
                               "of one f090 wafer-band per seed"]
@@ -111,9 +140,11 @@ def main(argv=None):
                   f"{r['bright_flux_ratio_worst']:.3f} | {r['bright_offset_max_arcmin']:.2f} | "
                   f"{r['unmatched']} |")
     args.json.write_text(json.dumps(results, indent=1))
+    command = "python studies/real_wafer.py " + " ".join(argv if argv is not None
+                                                           else sys.argv[1:])
+    seed_table(results, args.noise_only, duration / 3600, command).write(
+        args.json.with_name(args.json.stem + "_seeds.ecsv"), overwrite=True)
     if args.noise_only and "paper" in results:
-        command = "python studies/real_wafer.py " + " ".join(argv if argv is not None
-                                                               else sys.argv[1:])
         noise_table(results["paper"], args.site_config, duration / 3600, command).write(
             args.json.with_name(args.json.stem + "_noise.ecsv"), overwrite=True)
     false = [rows for rows in false if len(rows)]

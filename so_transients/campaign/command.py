@@ -99,7 +99,8 @@ def events_check(args) -> int:
 
     cfg = EventsCheckConfig.read(args.config, args.out)
     t0 = time.time()
-    folder = run_events_check(cfg, progress=not args.quiet)
+    folder = run_events_check(cfg, progress=not args.quiet,
+                              command=f"so-transients study events-check {args.config}")
     for name in ("events_per_flare", "lightcurve_recovery", "false_events"):
         print(f"\n{name}:")
         Table.read(folder / f"{name}.ecsv").pprint(max_lines=-1, max_width=-1)

@@ -36,6 +36,7 @@ from so_transients.sim.config import SimConfig
 from so_transients.sim.simulate import simulate
 from so_transients.site.pipeline import failed_groups, run_site_pipeline, write_site_config
 from so_transients.campaign.config import read_study_config
+from so_transients.campaign.provenance import commit, today
 from so_transients.campaign.full_check import site_processes
 
 #: Rise-time bins (s) of the light-curve recovery table.
@@ -155,7 +156,9 @@ def false_event_table(flare_events, flare_matches, noise_events, flares, hours, 
     return Table(rows=rows)
 
 
-def run_events_check(cfg: EventsCheckConfig, progress=True) -> Path:
+def run_events_check(cfg: EventsCheckConfig, progress=True, command="") -> Path:
+    """Both datasets through the site pipeline and the events command, and the three result
+    tables in ``<output>/results``, each naming ``command`` (what ran) and the commit."""
     flare_data, flare_out = run_dataset(cfg, "flares", cfg.seed, True, progress)
     noise_data, noise_out = run_dataset(cfg, "noise", cfg.seed + 1, False, progress)
     truth = Table.read(flare_data / "truth" / "flares.ecsv")
@@ -177,6 +180,9 @@ def run_events_check(cfg: EventsCheckConfig, progress=True) -> Path:
                   false_events=false_event_table(events, matches, noise_events, flares, hours,
                                                  cfg.joint_snr_min))
     for name, table in tables.items():
+        table.meta["comments"] = [command, f"commit {commit()}, {today()}; site config "
+                                  f"{cfg.preprocess}, seeds {cfg.seed} (flares) and "
+                                  f"{cfg.seed + 1} (noise)"]
         table.write(results / f"{name}.ecsv", overwrite=True)
     (results / "summary.json").write_text(json.dumps(
         {name: [dict(zip(table.colnames, row)) for row in table]

@@ -416,6 +416,7 @@ def test_each_results_page_says_where_its_figures_come_from():
         kept = not tables[0].startswith("not kept")
         assert kept == ("not kept" not in cells[2]), name
         if kept:
+            assert "measured again" not in cells[2], f"{name}: kept, yet to be measured again?"
             assert f'"{name}"' in this, f"no test reads {name}"
             for link in re.findall(r"\]\((data/[^)]+)\)", tables[0]):
                 assert (RESULTS / link).exists(), (name, link)

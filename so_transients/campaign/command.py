@@ -93,17 +93,13 @@ def combine(args) -> int:
 
 
 def events_check(args) -> int:
-    from astropy.table import Table
-
     from so_transients.campaign.events_check import EventsCheckConfig, run_events_check
 
     cfg = EventsCheckConfig.read(args.config, args.out)
     t0 = time.time()
     folder = run_events_check(cfg, progress=not args.quiet,
                               command=f"so-transients study events-check {args.config}")
-    for name in ("events_per_flare", "lightcurve_recovery", "false_events"):
-        print(f"\n{name}:")
-        Table.read(folder / f"{name}.ecsv").pprint(max_lines=-1, max_width=-1)
+    print((folder / "summary.md").read_text())
     print(f"Events check done in {time.time() - t0:.0f} s; results in {folder}")
     return 0
 

@@ -14,6 +14,9 @@ pipeline and the events command, and the results (``<output>/results``) say:
   searched), with no band requirement, with detection in both bands, and with ``joint_snr``
   at least ``joint_snr_min``; with the efficiency (flares with a matching event) under each
   requirement.
+
+``summary.md`` holds the three as Markdown (:func:`summary_markdown`, which also sets several
+runs side by side).
 """
 from __future__ import annotations
 
@@ -184,8 +187,55 @@ def run_events_check(cfg: EventsCheckConfig, progress=True, command="") -> Path:
                                   f"{cfg.preprocess}, seeds {cfg.seed} (flares) and "
                                   f"{cfg.seed + 1} (noise)"]
         table.write(results / f"{name}.ecsv", overwrite=True)
+    (results / "summary.md").write_text(summary_markdown({cfg.output.name: tables}))
     (results / "summary.json").write_text(json.dumps(
         {name: [dict(zip(table.colnames, row)) for row in table]
          for name, table in tables.items()}, indent=1,
         default=float))
     return results
+
+
+#: The result tables of one events check, by file stem.
+RESULT_TABLES = ("events_per_flare", "false_events", "lightcurve_recovery")
+
+
+def read_results(folder) -> dict:
+    """The result tables of an events check's ``results`` folder."""
+    return {name: Table.read(Path(folder) / f"{name}.ecsv") for name in RESULT_TABLES}
+
+
+def _median_scatter(median, scatter, fmt):
+    if not np.isfinite(median):
+        return "—"
+    return fmt.format(median) + (f" ({fmt.format(scatter)})" if np.isfinite(scatter) else "")
+
+
+def summary_markdown(runs: dict) -> str:
+    """Markdown tables of events checks, a row per run (``runs``: {name: read_results()}):
+    association, false events per requirement and light-curve recovery per rise-time bin."""
+    lines = ["| run | flares | with an event | exactly one event | most events for one flare |",
+             "| --- | ---: | ---: | ---: | ---: |"]
+    for name, t in runs.items():
+        per, none = t["events_per_flare"][0], t["false_events"][0]
+        lines.append(f"| {name} | {none['flares']} | {per['flares_with_events']} | "
+                     f"{per['exactly_one']} | {per['max_events_per_flare']} |")
+    lines += ["", "| run | requirement | false events | wafer-hours | per wafer-hour | "
+              "flares with an event |", "| --- | --- | ---: | ---: | ---: | ---: |"]
+    for name, t in runs.items():
+        for r in t["false_events"]:
+            lines.append(f"| {name} | {r['requirement']} | {r['false_events']} | "
+                         f"{r['wafer_hours']:g} | {r['per_wafer_hour']:.1f} ± "
+                         f"{r['per_wafer_hour_err']:.1f} | {r['flares_found']} |")
+    lines += ["", "| run | t_r (s) | eq. 1 fits | peak flux / truth | peak time - truth (s) | "
+              "duration / truth | spectral indices | index - injected |",
+              "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for name, t in runs.items():
+        for r in t["lightcurve_recovery"]:
+            lines.append(
+                f"| {name} | {r['t_rise_lo']:g}-{r['t_rise_hi']:g} | {r['n_fits']} | "
+                f"{_median_scatter(r['s_peak_ratio'], r['s_peak_scatter'], '{:.2f}')} | "
+                f"{_median_scatter(r['t_peak_offset'], r['t_peak_scatter'], '{:+.1f}')} | "
+                f"{_median_scatter(r['duration_ratio'], r['duration_scatter'], '{:.2f}')} | "
+                f"{r['n_alpha']} | "
+                f"{_median_scatter(r['alpha_bias'], r['alpha_scatter'], '{:+.2f}')} |")
+    return "\n".join(lines) + "\n"

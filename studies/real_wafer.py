@@ -37,6 +37,9 @@ import numpy as np
 from astropy.table import Table, vstack
 
 from so_transients.campaign.provenance import commit, today
+from so_transients.campaign.real_wafer_tables import (
+    flares_markdown, noise_markdown, seed_table
+)
 from so_transients.campaign.real_wafer import (
     CONFIG, PAPER, false_detections, flare_list, run_mode, score, simulate_seed, summary
 )
@@ -53,34 +56,6 @@ def noise_table(per_seed, site_config, hours, command, made_at=None) -> Table:
     rows = [dict(seed=int(seed), config=Path(site_config).name, false=int(r["false"]),
                  hours=hours, error_scale_max=max(r["error_scale"], default=np.nan),
                  commit=made_at) for seed, r in per_seed.items()]
-    table = Table(rows=rows)
-    table.meta["comments"] = [command, f"commit {made_at}, {today()}; {hours * 60:g} minutes "
-                              "of one f090 wafer-band per seed"]
-    return table
-
-
-def seed_table(results, noise_only, hours, command, made_at=None) -> Table:
-    """Every mode's results as one row per mode and seed: with flares, the 3 Jy and 900 mJy
-    flares crossed, found and found more than once, the 3 Jy flux ratios (median, worst), the
-    largest 3 Jy offset (arcmin) and the unmatched detections; noise only, the false
-    detections; both with the wafer-band-hours and the largest error scale the fit used."""
-    made_at = made_at or commit()
-    rows = []
-    for mode, per_seed in results.items():
-        for seed, r in per_seed.items():
-            row = dict(mode=mode, seed=int(seed), hours=hours,
-                       error_scale_max=max(r["error_scale"], default=np.nan))
-            if noise_only:
-                row["false"] = int(r["false"])
-            else:
-                for name in ("bright", "faint"):
-                    row.update({f"{name}_{k}": int(r[name][k])
-                                for k in ("crossed", "found", "twice")})
-                row.update(flux_ratio_median=r["bright_flux_ratio_median"],
-                           flux_ratio_worst=r["bright_flux_ratio_worst"],
-                           offset_max_arcmin=r["bright_offset_max_arcmin"],
-                           unmatched=int(r["unmatched"]))
-            rows.append(row)
     table = Table(rows=rows)
     table.meta["comments"] = [command, f"commit {made_at}, {today()}; {hours * 60:g} minutes "
                               "of one f090 wafer-band per seed"]
@@ -123,27 +98,13 @@ def main(argv=None):
                     results[mode][seed] = summary(rows, unmatched, duration / 3600)
                 results[mode][seed]["error_scale"] = found.meta["error_scale"]
                 print(mode, seed, json.dumps(results[mode][seed]), flush=True)
-    for mode, per_seed in results.items():
-        if args.noise_only:
-            total = sum(r["false"] for r in per_seed.values())
-            hours = len(per_seed) * duration / 3600
-            print(f"{mode} mode: {total} false detections in {hours:.2f} wafer-band-hours "
-                  f"({total / hours:.2f} per wafer-band-hour)")
-            continue
-        print(f"\n{mode} mode\n\n| seed | 3 Jy found | twice | 900 mJy found | twice | "
-              "flux ratio (median, worst) | max offset (') | unmatched |")
-        print("| --- | --- | --- | --- | --- | --- | --- | --- |")
-        for seed, r in per_seed.items():
-            print(f"| {seed} | {r['bright']['found']} / {r['bright']['crossed']} | "
-                  f"{r['bright']['twice']} | {r['faint']['found']} / {r['faint']['crossed']} | "
-                  f"{r['faint']['twice']} | {r['bright_flux_ratio_median']:.3f}, "
-                  f"{r['bright_flux_ratio_worst']:.3f} | {r['bright_offset_max_arcmin']:.2f} | "
-                  f"{r['unmatched']} |")
     args.json.write_text(json.dumps(results, indent=1))
     command = "python studies/real_wafer.py " + " ".join(argv if argv is not None
                                                            else sys.argv[1:])
-    seed_table(results, args.noise_only, duration / 3600, command).write(
-        args.json.with_name(args.json.stem + "_seeds.ecsv"), overwrite=True)
+    seeds = seed_table(results, args.noise_only, duration / 3600, command)
+    seeds.write(args.json.with_name(args.json.stem + "_seeds.ecsv"), overwrite=True)
+    print("\n" + (noise_markdown({args.config.stem: [seeds]}) if args.noise_only
+                  else flares_markdown(seeds)))
     if args.noise_only and "paper" in results:
         noise_table(results["paper"], args.site_config, duration / 3600, command).write(
             args.json.with_name(args.json.stem + "_noise.ecsv"), overwrite=True)

@@ -207,7 +207,8 @@ def read_results(folder) -> dict:
 def _median_scatter(median, scatter, fmt):
     if not np.isfinite(median):
         return "—"
-    return fmt.format(median) + (f" ({fmt.format(scatter)})" if np.isfinite(scatter) else "")
+    spread = fmt.replace("+", "").format(scatter) if np.isfinite(scatter) else None
+    return fmt.format(median) + (f" ({spread})" if spread else "")
 
 
 def summary_markdown(runs: dict) -> str:

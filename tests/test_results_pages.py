@@ -420,3 +420,53 @@ def test_each_results_page_says_where_its_figures_come_from():
             assert f'"{name}"' in this, f"no test reads {name}"
             for link in re.findall(r"\]\((data/[^)]+)\)", tables[0]):
                 assert (RESULTS / link).exists(), (name, link)
+
+
+def test_the_events_page_is_its_tables():
+    """The events page's tables are the committed events checks' (every line), and the
+    figures its text quotes are theirs."""
+    from so_transients.campaign.events_check import read_results, summary_markdown
+
+    page = RESULTS / "events.md"
+    lines = page.read_text().splitlines()
+    text = " ".join(page.read_text().split())
+    runs = {name: read_results(RESULTS / "data" / "events" / name)
+            for name in ("events_check", "events_check_short_sweeps", "events_check_faint")}
+    for line in summary_markdown(runs).splitlines():
+        assert line in lines, line
+    false = {name: {str(r["requirement"]): r for r in t["false_events"]}
+             for name, t in runs.items()}
+
+    def total(requirement, column):
+        return sum(float(f[requirement][column]) for f in false.values())
+
+    one = sum(int(t["events_per_flare"]["exactly_one"][0]) for t in runs.values())
+    seen = int(total("none", "flares_found"))
+    assert f"exactly one event in all three runs ({one} of {seen})" in text
+    hours = total("none", "wafer_hours")
+    assert f"{total('none', 'false_events'):.0f} false events in {hours:.0f} wafer-hours" in text
+    lost = seen - int(total("both_bands", "flares_found"))
+    faint = false["events_check_faint"]
+    assert total("both_bands", "false_events") == 0          # "left none"
+    assert faint["none"]["flares_found"] - faint["both_bands"]["flares_found"] == lost
+    assert (f"lost {lost} of the {seen} flares with events, all of them among the "
+            f"{faint['none']['flares_found']} faint ones") in text
+    assert total("joint_snr", "flares_found") == seen and total("joint_snr", "false_events") == 0
+    assert f"kept all {seen} and left none either" in text
+    fits = {(float(r["t_rise_lo"])): r for r in runs["events_check_short_sweeps"]
+            ["lightcurve_recovery"]}
+    slow, mid = fits[60.0], fits[15.0]
+    assert (f"{slow['n_fits']} fits give the peak flux at {slow['s_peak_ratio']:.2f} "
+            f"({slow['s_peak_scatter']:.2f}) of the truth and the duration at "
+            f"{slow['duration_ratio']:.2f} ({slow['duration_scatter']:.2f})") in text
+    assert (f"{mid['n_fits']} fits give {mid['s_peak_ratio']:.2f} ({mid['s_peak_scatter']:.2f})"
+            f" and {mid['duration_ratio']:.2f} ({mid['duration_scatter']:.2f})") in text
+    bright = np.concatenate([runs[n]["lightcurve_recovery"]["alpha_bias"]
+                             for n in ("events_check", "events_check_short_sweeps")])
+    assert np.nanmax(np.abs(bright)) <= 0.07
+    dim = runs["events_check_faint"]["lightcurve_recovery"]
+    assert (f"biased by {np.min(dim['alpha_bias']):+.2f} to {np.max(dim['alpha_bias']):+.2f}, "
+            f"with a scatter of {np.min(dim['alpha_scatter']):.2f}-"
+            f"{np.max(dim['alpha_scatter']):.2f}") in text
+    assert runs["events_check"]["lightcurve_recovery"]["n_fits"].sum() == 0
+    assert "none of the 40 flares of `events_check` got a converged fit" in text

@@ -15,7 +15,7 @@ pipeline (paper mode: ``studies/configs/preprocess_paper_realistic.yaml``; coher
 within 3 s and 3'. With ``--noise-only`` (and ``--config studies/configs/ideal_wafer.yaml``
 for ideal detectors) it counts the false detections per wafer-band-hour instead.
 ``--site-config`` runs paper mode with another site config (a copy of the shipped one with a
-setting changed). Prints a Markdown table per mode and writes ``real_wafer.json``, and the
+setting changed). Prints its Markdown table (a row per mode and seed) and writes ``real_wafer.json``, and the
 detections no flare explains, with the cosmic rays, jumps and NaN stretches near them, to
 ``real_wafer_false.ecsv`` (beside the JSON), and every mode's results per seed to
 ``real_wafer_seeds.ecsv``; with ``--noise-only``, paper mode's false
@@ -33,10 +33,9 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 
-import numpy as np
 from astropy.table import Table, vstack
 
-from so_transients.campaign.provenance import commit, today
+from so_transients.campaign.provenance import commit
 from so_transients.campaign.real_wafer_tables import (
     flares_markdown, noise_markdown, seed_table
 )
@@ -48,17 +47,16 @@ FALSE_COLUMNS = ("t_obs", "snr_max", "snr_fit", "peak_ratio", "n_dets", "n_fit_d
                  "peak_status", "dt_glitch", "glitch_on_peak", "dt_jump", "dt_peak_jump", "dt_gap")
 
 
-def noise_table(per_seed, site_config, hours, command, made_at=None) -> Table:
-    """Paper mode's noise-only results (``results["paper"]``) as one row per seed: false
-    detections, wafer-band-hours and the largest error scale the fit used; ``made_at``: the
-    commit that ran (this checkout's by default)."""
-    made_at = made_at or commit()
-    rows = [dict(seed=int(seed), config=Path(site_config).name, false=int(r["false"]),
-                 hours=hours, error_scale_max=max(r["error_scale"], default=np.nan),
-                 commit=made_at) for seed, r in per_seed.items()]
-    table = Table(rows=rows)
-    table.meta["comments"] = [command, f"commit {made_at}, {today()}; {hours * 60:g} minutes "
-                              "of one f090 wafer-band per seed"]
+def noise_table(seeds: Table, site_config, made_at) -> Table:
+    """Paper mode's rows of a noise-only run's :func:`seed_table` as the drawn-wafer page
+    reads them: a row per seed with its false detections, wafer-band-hours, the largest error
+    scale the fit used, the site config and ``made_at``, the commit that ran."""
+    paper = seeds[seeds["mode"] == "paper"]
+    table = Table(dict(seed=paper["seed"], config=[Path(site_config).name] * len(paper),
+                       false=paper["false"], hours=paper["hours"],
+                       error_scale_max=paper["error_scale_max"],
+                       commit=[made_at] * len(paper)))
+    table.meta["comments"] = list(seeds.meta["comments"])
     return table
 
 
@@ -101,12 +99,13 @@ def main(argv=None):
     args.json.write_text(json.dumps(results, indent=1))
     command = "python studies/real_wafer.py " + " ".join(argv if argv is not None
                                                            else sys.argv[1:])
-    seeds = seed_table(results, args.noise_only, duration / 3600, command)
+    made_at = commit()
+    seeds = seed_table(results, args.noise_only, duration / 3600, command, made_at)
     seeds.write(args.json.with_name(args.json.stem + "_seeds.ecsv"), overwrite=True)
     print("\n" + (noise_markdown({args.config.stem: [seeds]}) if args.noise_only
                   else flares_markdown(seeds)))
     if args.noise_only and "paper" in results:
-        noise_table(results["paper"], args.site_config, duration / 3600, command).write(
+        noise_table(seeds, args.site_config, made_at).write(
             args.json.with_name(args.json.stem + "_noise.ecsv"), overwrite=True)
     false = [rows for rows in false if len(rows)]
     false = vstack(false) if false else None

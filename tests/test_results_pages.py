@@ -470,3 +470,49 @@ def test_the_events_page_is_its_tables():
             f"{np.max(dim['alpha_scatter']):.2f}") in text
     assert runs["events_check"]["lightcurve_recovery"]["n_fits"].sum() == 0
     assert "none of the 40 flares of `events_check` got a converged fit" in text
+
+
+def test_the_real_wafer_page_is_its_tables():
+    """The real-wafer page's flare and noise tables are the committed runs' (every line), and
+    the figures its text quotes are theirs."""
+    from so_transients.campaign.real_wafer_tables import flares_markdown, noise_markdown
+
+    page = RESULTS / "real_wafer.md"
+    lines = page.read_text().splitlines()
+    text = " ".join(page.read_text().split())
+    data = RESULTS / "data" / "real_wafer"
+    flares = Table.read(data / "flares.ecsv")
+    noise = {name: [Table.read(data / f"noise_{stem}_{seeds}.ecsv")
+                    for seeds in ("1-6", "7-12", "13-18")]
+             for name, stem in (("real wafer", "real"), ("ideal wafer", "ideal"))}
+    for line in (flares_markdown(flares) + noise_markdown(noise)).splitlines():
+        assert line in lines, line
+
+    modes = set(flares["mode"])
+    assert modes == {"paper", "coherent"}
+    every = all((flares[f"{k}_found"] == flares[f"{k}_crossed"]).all()
+                and (flares[f"{k}_twice"] == 0).all() for k in ("bright", "faint"))
+    assert every, "the page says every flare is found once"
+    per_mode = {k: {int(flares[flares["mode"] == m][f"{k}_found"].sum()) for m in modes}
+                for k in ("bright", "faint")}
+    assert (f"every 3 Jy and 900 mJy flare is found once in both modes "
+            f"({per_mode['bright'].pop()} / 50 and {per_mode['faint'].pop()} / 25 in each)") \
+        in text
+    assert (f"3 Jy flux medians of {flares['flux_ratio_median'].min():.3f}-"
+            f"{flares['flux_ratio_median'].max():.3f} of the light curve (worst "
+            f"{flares['flux_ratio_worst'].min():.3f})") in text
+    assert f"positions within {flares['offset_max_arcmin'].max():.2f}′" in text
+    assert flares["unmatched"].sum() == 0                       # "no detection is unmatched"
+    assert f"(medians {flares['flux_ratio_median'].min():.3f}-" \
+        f"{flares['flux_ratio_median'].max():.3f})" in text
+
+    rows = {name: [r for t in tables for r in t] for name, tables in noise.items()}
+    hours = {name: sum(float(r["hours"]) for r in rs) for name, rs in rows.items()}
+    false = {name: sum(int(r["false"]) for r in rs) for name, rs in rows.items()}
+    assert false == {"real wafer": 0, "ideal wafer": 0}         # "neither mode ... none"
+    assert {f"{h:.0f}" for h in hours.values()} == {"6", "3"}   # both modes real, paper ideal
+    assert f"fewer than {np.log(10) / 3:.2f} per wafer-band-hour at 90 %" in text
+    scale = {name: [float(r["error_scale_max"]) for r in rs] for name, rs in rows.items()}
+    assert (f"is {min(scale['real wafer']):.2f}-{max(scale['real wafer']):.2f} on the real "
+            f"wafer and {min(scale['ideal wafer']):.2f}-{max(scale['ideal wafer']):.2f} on the "
+            "ideal one") in text

@@ -60,8 +60,8 @@ NOISE_HEADER = ("| detectors | mode | seeds | wafer-band-hours | false detection
 
 def noise_markdown(runs: dict) -> str:
     """A row per set of detectors and mode of noise-only runs (``{name: [seed tables]}``):
-    the seeds, their hours, the false detections and their rate (Poisson error, one event
-    when there is none) and the largest error scale the fit used."""
+    the seeds, their hours, the false detections and their rate (with its Poisson error, or
+    its 90 % upper limit when there is none) and the largest error scale the fit used."""
     lines = [NOISE_HEADER, "| --- | --- | --- | ---: | ---: | ---: | ---: |"]
     for name, tables in runs.items():
         rows = [r for t in tables for r in t]
@@ -73,6 +73,14 @@ def noise_markdown(runs: dict) -> str:
             span = f"{seeds[0]}-{seeds[-1]}" if seeds == list(range(seeds[0], seeds[-1] + 1)) \
                 else ", ".join(map(str, seeds))
             lines.append(f"| {name} | {mode} | {span} | {hours:.2f} | {false} | "
-                         f"{false / hours:.1f} ± {np.sqrt(max(false, 1)) / hours:.1f} | "
+                         f"{rate_text(false, hours)} | "
                          f"{max(float(r['error_scale_max']) for r in mine):.2f} |")
     return "\n".join(lines) + "\n"
+
+
+def rate_text(events: int, hours: float) -> str:
+    """A rate per wafer-band-hour: ``events / hours`` with its Poisson error, or, with no
+    event, its 90 % upper limit (``ln 10 / hours``)."""
+    if events == 0:
+        return f"< {np.log(10) / hours:.2f} (90 %)"
+    return f"{events / hours:.1f} ± {np.sqrt(events) / hours:.1f}"

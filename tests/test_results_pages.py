@@ -516,3 +516,62 @@ def test_the_real_wafer_page_is_its_tables():
     assert (f"is {min(scale['real wafer']):.2f}-{max(scale['real wafer']):.2f} on the real "
             f"wafer and {min(scale['ideal wafer']):.2f}-{max(scale['ideal wafer']):.2f} on the "
             "ideal one") in text
+
+
+def test_the_coherent_page_is_its_tables():
+    """The coherent page's far-calibration and time-slide tables are the committed runs' (every
+    line), and the figures its text quotes are theirs."""
+    from so_transients.campaign.far_tables import (
+        calibration_markdown, levels_markdown, pulls, read_far_tables, slides_markdown
+    )
+
+    page = RESULTS / "coherent.md"
+    lines = page.read_text().splitlines()
+    text = " ".join(page.read_text().split())
+    data = RESULTS / "data" / "coherent"
+    levels = Table.read(data / "far_calibration" / "levels.ecsv")
+    cal = Table.read(data / "far_calibration" / "calibration.ecsv")
+    runs = [(slides, read_far_tables(data / name)) for slides, name in (
+        ("every detector on its own", "campaign_coherent_far"),
+        ("4 groups (the default)", "campaign_coherent_far_grouped"),
+        ("every detector on its own", "campaign_coherent_far_f150"),
+        ("4 groups (the default)", "campaign_coherent_far_f150_grouped"))]
+    for line in (levels_markdown(levels) + calibration_markdown(cal)
+                 + slides_markdown(runs)).splitlines():
+        assert line in lines, line
+    made_at, day = cal.meta["comments"][1].split(";")[0].removeprefix("commit ").split(", ")
+    assert f"`far_calibration.png`: {day}, commit `{made_at}`" in text
+
+    pull = pulls(cal["maxima_far_below"], cal["expected"])
+    x = np.asarray(cal["far_per_hour"])
+    low, high = (cal["expected"] >= 1) & (x < 200), (cal["expected"] >= 1) & (x >= 200)
+    assert np.all(np.abs(pull[low]) < 2)                  # "within Poisson errors"
+    ratio = np.asarray(cal["maxima_far_below"]) / np.asarray(cal["expected"])
+    assert (f"Up to `x` = {x[low].max():.0f} per wafer-band-hour the counts are within Poisson "
+            f"errors of `x` times the live time (pulls {pull[low].min():+.1f} to "
+            f"{pull[low].max():+.1f}); from `x` = {x[high].min():.0f}") in text
+    assert (f"(pulls {pull[high].min():+.1f} to {pull[high].max():+.1f}, "
+            f"{ratio[high].min():.2f}-{ratio[high].max():.2f} times as many)") in text
+    z = {float(r["z"]): r for r in levels}
+    assert (f"at Z >= 3.5, {z[3.5]['data_maxima']} against {z[3.5]['inverted_maxima']} in the "
+            "sign-inverted data") in text
+    assert (f"{z[4.5]['far_slides_x_live']:.1f} data-live-times' worth at Z >= 4.5 where the "
+            f"data have {z[4.5]['data_maxima']}") in text
+    assert (f"data {cal.meta['data_scale']:.3f}, slides {cal.meta['slide_scale']:.3f}") in text
+    assert f"{cal.meta['live_data_hours']:.2f} h of data" in text
+
+    budget = [tables["far_budget"][0] for _, tables in runs]
+    thresholds = [np.asarray(tables["thresholds_far"]["s90"]) for _, tables in runs]
+    for one, grouped in ((0, 1), (2, 3)):                 # "the same with either kind of slides"
+        assert budget[one]["z_budget"] == budget[grouped]["z_budget"]
+        assert np.array_equal(thresholds[one], thresholds[grouped])
+        assert budget[grouped]["n_slide_maxima"] < budget[one]["n_slide_maxima"]
+    assert (f"(Z = {budget[0]['z_budget']:.2f} at f090, {budget[2]['z_budget']:.2f} at f150")\
+        in text
+    assert (f"({budget[1]['n_slide_maxima']:,} against {budget[0]['n_slide_maxima']:,} at f090, "
+            f"{budget[3]['n_slide_maxima']:,} against {budget[2]['n_slide_maxima']:,} at f150)")\
+        in text
+    assert (f"(at f090 Z = {budget[1]['z_budget_chi2_failed']:.2f} against "
+            f"{budget[0]['z_budget_chi2_failed']:.2f})") in text
+    assert (f"are {budget[0]['n_noise_above']} at f090 and {budget[2]['n_noise_above']} at f150 "
+            f"against {budget[0]['expected_above']:.2f} expected in each") in text

@@ -11,10 +11,12 @@ campaign folder and :mod:`.flare_injection` for the fast injection path.
 - :mod:`.search_steps`: the site config's search steps run in-process
 - :mod:`.matching`: detections matched to injected flares
 - :mod:`.stats`, :mod:`.report`, :mod:`.markdown`, :mod:`.figures`, :mod:`.combine`: results
-- :mod:`.equal_rate`, :mod:`.far_budget`: thresholds at the paper's false-detection rate
+- :mod:`.equal_rate`, :mod:`.far_budget`: thresholds at the paper's false-detection rate;
+  :mod:`.far_tables`: the false-alarm studies' tables as their results page shows them
 - :mod:`.events_check`: the events step measured on simulated flares
 - :mod:`.score_training`: the real-or-artefact score trained on simulated real wafers
 - :mod:`.command`: ``so-transients study`` and its studies
-- :mod:`.drawn_wafer`, :mod:`.real_wafer`: realization studies on simulated real wafers;
+- :mod:`.drawn_wafer`, :mod:`.real_wafer`, :mod:`.real_wafer_tables`: realization studies on
+  simulated real wafers and their results page's tables;
   :mod:`.provenance`: the commit and day a study's table records
 """

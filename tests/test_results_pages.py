@@ -517,6 +517,20 @@ def test_the_real_wafer_page_is_its_tables():
             f"wafer and {min(scale['ideal wafer']):.2f}-{max(scale['ideal wafer']):.2f} on the "
             "ideal one") in text
 
+    other = {name: Table.read(data / f"noise_{stem}_other_scan.ecsv")
+             for name, stem in (("real wafer, other scan", "real"),
+                                ("ideal wafer, other scan", "ideal"))}
+    for line in noise_markdown({k: [t] for k, t in other.items()}).splitlines():
+        assert line in lines, line
+    real, ideal = other.values()
+    paper = real[real["mode"] == "paper"]
+    assert (f"Paper mode makes {paper['false'].sum()} false detection in "
+            f"{paper['hours'].sum():.0f} wafer-band-hours of the real wafer") in text
+    assert ideal["false"].sum() == 0 and real[real["mode"] == "coherent"]["false"].sum() == 0
+    assert (f"(up to {real['error_scale_max'].max():.2f} on the real wafer, "
+            f"{ideal['error_scale_max'].max():.2f} on the ideal one, against "
+            f"{max(max(v) for v in scale.values()):.2f} on the default scan)") in text
+
 
 def test_the_coherent_page_is_its_tables():
     """The coherent page's far-calibration and time-slide tables are the committed runs' (every

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 from astropy.table import Table, vstack
 
+from so_transients.campaign.provenance import repository_path
 from so_transients.campaign.report import INPUT_TABLES, OPTIONAL_TABLES, write_tables
 
 
@@ -40,6 +41,10 @@ def combine_results(folders, out) -> Path:
             if band in seen:
                 raise ValueError(f"band {band} is in both {seen[band]} and {folder}")
             seen[band] = folder
+    # what each part's tables say of their run (command, commit, site config), kept
+    comments = [f"{repository_path(f, 2)}: "
+                + "; ".join(part["efficiency"].meta.get("comments", []))
+                for f, part in zip(folders, parts)]
     tables = {}
     for name in INPUT_TABLES:
         found = [p[name] for p in parts if p[name] is not None and len(p[name])]
@@ -47,5 +52,5 @@ def combine_results(folders, out) -> Path:
             table.meta.clear()
         tables[name] = vstack(found) if found else (None if name in OPTIONAL_TABLES else
                                                    parts[0][name])
-    meta = {"combined_from": [str(Path(f)) for f in folders]}
+    meta = {"combined_from": [repository_path(f, 2) for f in folders], "comments": comments}
     return write_tables(out, tables, meta)

@@ -74,7 +74,8 @@ def campaign(args) -> int:
     t0 = time.time()
     try:
         folder = run_campaign(cfg, restart=args.restart, progress=not args.quiet, pool=pool,
-                              as_completed=as_completed)
+                              as_completed=as_completed,
+                              command=f"so-transients study campaign {args.config}")
     finally:
         if pool is not None:
             pool.shutdown()

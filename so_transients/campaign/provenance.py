@@ -1,6 +1,7 @@
 """Where a study's table came from: the commit of the code that measured it and the day."""
 from __future__ import annotations
 
+import os
 import subprocess
 from datetime import datetime, timezone
 from pathlib import Path
@@ -24,3 +25,14 @@ def commit() -> str:
 def today() -> str:
     """Today's UTC date, YYYY-MM-DD."""
     return datetime.now(timezone.utc).strftime("%Y-%m-%d")
+
+
+def repository_path(path, parts=1) -> str:
+    """``path`` relative to the repository when it lies inside it, else its last ``parts``
+    components alone: a table that records where its inputs came from never names a folder
+    outside the repository."""
+    path = Path(os.path.abspath(path))       # as named: a symlink into the package is kept
+    try:
+        return str(path.relative_to(ROOT))
+    except ValueError:
+        return str(Path(*path.parts[-parts:]))

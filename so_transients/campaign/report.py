@@ -255,8 +255,11 @@ def fitted_noise_table(folders: dict) -> Table:
 STATISTICS = ("map_z", "coherent_snr")
 
 
-def write_results(cfg, folder, flares, detections, folders, check=None) -> Path:
-    """Write every table and figure of one campaign; returns ``folder``."""
+def write_results(cfg, folder, flares, detections, folders, check=None, command="") -> Path:
+    """Write every table and figure of one campaign, each table naming ``command``, the site
+    config and the commit that ran; returns ``folder``."""
+    from so_transients.campaign.provenance import commit, repository_path, today
+
     eff = efficiency_table(flares)
     rms = noise_rms(folders)
     eff["tod_rms"] = [rms.get(b, np.nan) for b in eff["band"]]
@@ -272,7 +275,10 @@ def write_results(cfg, folder, flares, detections, folders, check=None) -> Path:
                   fitted_noise=fitted_noise_table(folders), full_check=check,
                   far_background=maxima if len(live) else None,
                   far_live=live if len(live) else None)
-    return write_tables(folder, tables, {"config_digest": cfg.digest()}, cfg.seed)
+    meta = {"config_digest": cfg.digest(),
+            "comments": [command, f"commit {commit()}, {today()}; site config "
+                         f"{repository_path(cfg.preprocess)}"]}
+    return write_tables(folder, tables, meta, cfg.seed)
 
 
 #: What :func:`write_tables` is given (and :mod:`.combine` reads back), besides what it derives.

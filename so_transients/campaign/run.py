@@ -194,8 +194,9 @@ def collect(specs):
 
 
 def run_campaign(cfg: CampaignConfig, restart=False, progress=True, pool=None,
-                 as_completed=None) -> Path:
-    """Run (or continue) ``cfg``; returns the results folder."""
+                 as_completed=None, command="") -> Path:
+    """Run (or continue) ``cfg``; returns the results folder, whose tables name ``command``
+    (what ran), the site config and the commit."""
     out = Path(cfg.output)
     check_state(cfg, out, restart)
     own = pool is None and cfg.nproc > 1
@@ -218,7 +219,7 @@ def run_campaign(cfg: CampaignConfig, restart=False, progress=True, pool=None,
     check = None
     if cfg.full_check.cells:
         check = run_full_check(cfg, out, folders, progress)
-    return write_results(cfg, out / "results", flares, detections, folders, check)
+    return write_results(cfg, out / "results", flares, detections, folders, check, command)
 
 
 def _cell(spec):

@@ -52,6 +52,12 @@ def test_every_output_is_written(quick):
         assert (results / name).stat().st_size > 0, name
     # the thresholds' table is printed (its values: test_thresholds_agree_with_the_paper_grid)
     assert "| t_r (s) | 10 % | 50 % | 90 % |" in run.stdout and "## f090" in run.stdout
+    # every table names what ran, the commit and the site config, in the repository's terms
+    from so_transients.campaign.provenance import commit
+    command, provenance = Table.read(results / "thresholds.ecsv").meta["comments"]
+    assert command == f"so-transients study campaign {QUICK}"
+    assert provenance.startswith(f"commit {commit()}, ")
+    assert provenance.endswith("site config configs/preprocess_paper.yaml")
     false = Table.read(results / "false_positives.ecsv")
     assert str(false["rate_noise"].unit) == "1 / h" and false["hours"][0] == pytest.approx(1 / 6, rel=1e-3)
     # the per-group searches (run in the pool while the next group was prepared) all finished
@@ -441,3 +447,16 @@ def test_a_prepared_groups_false_alarm_background(quick):
     # about a thousand maxima per hour above Z = 3 at f090 (the far calibration's 30 minutes)
     assert 100 < len(b.slides) / b.slide_hours < 10_000
     assert b.far(3.0)["far"][0] > b.far(5.0)["far"][0]
+
+
+def test_combined_results_keep_what_each_part_says_of_its_run(quick, tmp_path):
+    """``so-transients study combine`` writes its parts' commands and commits into every table,
+    and names the parts without the folders above them."""
+    from so_transients.campaign.combine import combine_results
+
+    out, _ = quick
+    part = Table.read(out / "results" / "thresholds.ecsv").meta["comments"]
+    combined = Table.read(combine_results([out / "results"], tmp_path / "combined")
+                          / "thresholds.ecsv").meta
+    assert combined["combined_from"] == [f"{out.name}/results"]
+    assert combined["comments"] == [f"{out.name}/results: " + "; ".join(part)]

@@ -91,7 +91,9 @@ def main(argv=None):
         pool, as_completed = executor(cfg.nproc)
         try:
             results = run_campaign(cfg, progress=sys.stderr.isatty(), pool=pool,
-                                   as_completed=as_completed)
+                                   as_completed=as_completed,
+                                   command="python studies/imperfection_campaigns.py --only "
+                                           f"{name}")
         finally:
             if pool is not None:
                 pool.shutdown()

@@ -36,7 +36,7 @@ from astropy.table import Table
 from so_transients.campaign.drawn_wafer import (
     SHIPPED, config_summaries, drawn_config, drawn_summary, realization_rows, run_shipped
 )
-from so_transients.campaign.provenance import commit, today
+from so_transients.campaign.provenance import stamp
 from so_transients.campaign.real_wafer import (
     flare_list, mislocated, score, simulate_seed, summary
 )
@@ -116,7 +116,7 @@ def write_table(table, args):
     out = Table(rows=[[r.get(k, np.nan) for k in names] for r in table], names=names)
     out.meta["comments"] = [f"{Path(sys.argv[0]).name}, seeds {args.seeds}, modes {args.modes}",
                             f"{args.minutes:g} minutes of one f090 wafer-band per realization",
-                            f"commit {commit()}, {today()}; configs as shipped at that commit"]
+                            f"{stamp()}; configs as shipped at that commit"]
     out.write(args.out, overwrite=True)
     return out
 

@@ -42,7 +42,7 @@ from sotodlib.preprocess import Pipeline  # noqa: E402
 import so_transients  # noqa: E402,F401  registers the steps and the loader
 from astropy.table import Table  # noqa: E402
 
-from so_transients.campaign.provenance import commit, today  # noqa: E402
+from so_transients.campaign.provenance import stamp  # noqa: E402
 from so_transients.coherent.config import CoherentConfig  # noqa: E402
 from so_transients.common import pointing  # noqa: E402
 from so_transients.coherent.statistic import (
@@ -213,7 +213,7 @@ def main(argv=None):
                     live_background_hours=live_bg, comments=[
                         "python studies/far_calibration.py " + " ".join(sys.argv[1:] if argv
                                                                        is None else argv),
-                        f"commit {commit()}, {today()}; the shipped standard steps of "
+                        f"{stamp()}; the shipped standard steps of "
                         "configs/preprocess_paper.yaml and transient_filter"])
         write_tables(args.out, meta, dict(z=levels, data_maxima=observed,
                                           inverted_maxima=inverted,

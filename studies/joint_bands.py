@@ -35,7 +35,7 @@ from tqdm import tqdm
 from so_transients.campaign.config import load_campaign, read_study_config
 from so_transients.campaign.noise import GroupState
 from so_transients.campaign.noise_model import filtered_snr
-from so_transients.campaign.provenance import commit, today
+from so_transients.campaign.provenance import stamp
 from so_transients.campaign.run import prepare_noise
 from so_transients.campaign.stats import thresholds
 from so_transients.coherent.config import find_settings
@@ -260,7 +260,7 @@ def main(argv=None):
                 rows_eff += inject(states, searches, thr, cfg, camp, sig, scan, t_rise, alpha,
                                    rng, dict(obs_id=obs, wafer=wafer))
     provenance = [f"python studies/joint_bands.py {args.config}",
-                  f"commit {commit()}, {today()}; campaign {cfg.campaign}"]
+                  f"{stamp()}; campaign {cfg.campaign}"]
     report(cfg, out, Table(rows=rows_eff), Table(rows=rows_bg), provenance)
 
 

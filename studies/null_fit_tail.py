@@ -37,7 +37,7 @@ from sotodlib import core
 from sotodlib.preprocess import Pipeline
 
 from so_transients.campaign.drawn_wafer import drawn_config
-from so_transients.campaign.provenance import commit, today
+from so_transients.campaign.provenance import stamp
 from so_transients.campaign.real_wafer import simulate_seed
 from so_transients.campaign.search_steps import split_pipe
 from so_transients.common import pointing
@@ -205,7 +205,7 @@ def main(argv=None):
                 tails += tail
                 print(row, flush=True)
     comments = [f"python studies/null_fit_tail.py {' '.join(sys.argv[1:])}".strip(),
-                f"commit {commit()}, {today()}; configs/preprocess_paper.yaml's steps up to "
+                f"{stamp()}; configs/preprocess_paper.yaml's steps up to "
                 "transient_filter, noise only, one f090 wafer-band"]
     summary = Table(rows=rows)
     summary.meta["comments"] = comments

@@ -23,7 +23,7 @@ import numpy as np
 from astropy.table import Table
 
 from so_transients.campaign.config import load_campaign
-from so_transients.campaign.provenance import commit, today
+from so_transients.campaign.provenance import stamp
 from so_transients.campaign.noise import Group, GroupState
 from so_transients.campaign.search_steps import SearchSteps
 
@@ -99,7 +99,7 @@ def write_table(rows, args):
         f"{Path(sys.argv[0]).name} {args.config}, --buffer {args.buffer:g}",
         "noise-only data and their sign-inverted copy; now: turnaround_buffer 0 (as shipped), "
         f"buffer: turnaround_buffer {args.buffer:g} s",
-        f"commit {commit()}, {today()}"]
+        f"{stamp()}"]
     table.write(args.table, format="ascii.ecsv", overwrite=True)
     print(f"wrote {args.table}")
 

@@ -39,7 +39,7 @@ from so_transients.sim.config import SimConfig
 from so_transients.sim.simulate import simulate
 from so_transients.site.pipeline import failed_groups, run_site_pipeline, write_site_config
 from so_transients.campaign.config import read_study_config
-from so_transients.campaign.provenance import commit, today
+from so_transients.campaign.provenance import stamp
 from so_transients.campaign.full_check import site_processes
 
 #: Rise-time bins (s) of the light-curve recovery table.
@@ -183,7 +183,7 @@ def run_events_check(cfg: EventsCheckConfig, progress=True, command="") -> Path:
                   false_events=false_event_table(events, matches, noise_events, flares, hours,
                                                  cfg.joint_snr_min))
     for name, table in tables.items():
-        table.meta["comments"] = [command, f"commit {commit()}, {today()}; site config "
+        table.meta["comments"] = [command, f"{stamp()}; site config "
                                   f"{cfg.preprocess}, seeds {cfg.seed} (flares) and "
                                   f"{cfg.seed + 1} (noise)"]
         table.write(results / f"{name}.ecsv", overwrite=True)

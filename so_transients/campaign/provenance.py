@@ -27,6 +27,12 @@ def today() -> str:
     return datetime.now(timezone.utc).strftime("%Y-%m-%d")
 
 
+def stamp(made_at=None) -> str:
+    """``commit <hash>, <YYYY-MM-DD>``: what a study's table records of the code and the day
+    that made it (``made_at``: the commit, this checkout's by default)."""
+    return f"commit {made_at or commit()}, {today()}"
+
+
 def repository_path(path, parts=1) -> str:
     """``path`` relative to the repository when it lies inside it, else its last ``parts``
     components alone: a table that records where its inputs came from never names a folder

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from astropy.table import Table
 
-from so_transients.campaign.provenance import commit, today
+from so_transients.campaign.provenance import commit, stamp
 
 
 def seed_table(results, noise_only, hours, command, made_at=None) -> Table:
@@ -33,7 +33,7 @@ def seed_table(results, noise_only, hours, command, made_at=None) -> Table:
                            unmatched=int(r["unmatched"]))
             rows.append(row)
     table = Table(rows=rows)
-    table.meta["comments"] = [command, f"commit {made_at}, {today()}; {hours * 60:g} minutes "
+    table.meta["comments"] = [command, f"{stamp(made_at)}; {hours * 60:g} minutes "
                               "of one f090 wafer-band per seed"]
     return table
 

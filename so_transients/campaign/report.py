@@ -23,6 +23,7 @@ from astropy.table import Table, vstack
 from so_transients.common.angles import ARCSEC
 from so_transients.common.bands import get_band
 from so_transients.campaign.noise import group_info
+from so_transients.campaign.provenance import repository_path, stamp
 from so_transients.campaign.far_budget import background_tables
 from so_transients.campaign.stats import LEVELS, binomial_interval, thresholds
 
@@ -258,8 +259,6 @@ STATISTICS = ("map_z", "coherent_snr")
 def write_results(cfg, folder, flares, detections, folders, check=None, command="") -> Path:
     """Write every table and figure of one campaign, each table naming ``command``, the site
     config and the commit that ran; returns ``folder``."""
-    from so_transients.campaign.provenance import commit, repository_path, today
-
     eff = efficiency_table(flares)
     rms = noise_rms(folders)
     eff["tod_rms"] = [rms.get(b, np.nan) for b in eff["band"]]
@@ -276,7 +275,7 @@ def write_results(cfg, folder, flares, detections, folders, check=None, command=
                   far_background=maxima if len(live) else None,
                   far_live=live if len(live) else None)
     meta = {"config_digest": cfg.digest(),
-            "comments": [command, f"commit {commit()}, {today()}; site config "
+            "comments": [command, f"{stamp()}; site config "
                          f"{repository_path(cfg.preprocess)}"]}
     return write_tables(folder, tables, meta, cfg.seed)
 

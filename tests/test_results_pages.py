@@ -495,6 +495,7 @@ def test_the_real_wafer_page_is_its_tables():
     assert every, "the page says every flare is found once"
     per_mode = {k: {int(flares[flares["mode"] == m][f"{k}_found"].sum()) for m in modes}
                 for k in ("bright", "faint")}
+    assert all(len(found) == 1 for found in per_mode.values()), per_mode   # "in each"
     assert (f"every 3 Jy and 900 mJy flare is found once in both modes "
             f"({per_mode['bright'].pop()} / 50 and {per_mode['faint'].pop()} / 25 in each)") \
         in text

@@ -1,7 +1,7 @@
 """The coherent search's false-alarm studies as the Markdown of their results page
 (``docs/results/coherent.md``): the ``far`` calibration of ``studies/far_calibration.py``
 (its ``levels.ecsv`` and ``calibration.ecsv``) and the time-slide backgrounds of coherent
-campaigns (their ``far_budget.ecsv``, ``far_live.ecsv`` and ``thresholds_far.ecsv``)."""
+campaigns (their ``far_budget.ecsv`` and ``thresholds_far.ecsv``)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -52,11 +52,9 @@ def _number(value: float) -> str:
 
 
 def read_far_tables(folder) -> dict:
-    """A coherent campaign's results folder's ``far_budget``, ``far_live`` and
-    ``thresholds_far`` tables."""
+    """A coherent campaign's results folder's ``far_budget`` and ``thresholds_far`` tables."""
     folder = Path(folder)
-    return {name: Table.read(folder / f"{name}.ecsv")
-            for name in ("far_budget", "far_live", "thresholds_far")}
+    return {name: Table.read(folder / f"{name}.ecsv") for name in ("far_budget", "thresholds_far")}
 
 
 SLIDES_HEADER = ("| band | slides | slide-hours | slides' maxima from Z = 4.5 | budget: passing / "
@@ -66,8 +64,7 @@ SLIDES_HEADER = ("| band | slides | slide-hours | slides' maxima from Z = 4.5 | 
 
 def slides_markdown(runs) -> str:
     """A row per coherent campaign (``(slides description, read_far_tables(...))`` pairs): its
-    band,
-    the slides' hours and maxima, the Z at the paper's rate for a candidate passing and
+    band, the slides' hours and maxima, the Z at the paper's rate for a candidate passing and
     failing the chi-squared test, the noise-only detections reaching it against the number
     expected at that rate, and the 90 % thresholds at that budget."""
     lines = [SLIDES_HEADER, "| --- | --- | ---: | ---: | ---: | ---: | --- |"]

@@ -12,7 +12,8 @@ campaign folder and :mod:`.flare_injection` for the fast injection path.
 - :mod:`.matching`: detections matched to injected flares
 - :mod:`.stats`, :mod:`.report`, :mod:`.markdown`, :mod:`.figures`, :mod:`.combine`: results
 - :mod:`.equal_rate`, :mod:`.far_budget`: thresholds at the paper's false-detection rate;
-  :mod:`.far_tables`: the false-alarm studies' tables as their results page shows them
+  :mod:`.far_tables`: the false-alarm studies' tables as their results page shows them;
+  :mod:`.mode_tables`: both search modes' grids side by side at the paper's rate
 - :mod:`.events_check`: the events step measured on simulated flares
 - :mod:`.score_training`: the real-or-artefact score trained on simulated real wafers
 - :mod:`.command`: ``so-transients study`` and its studies

@@ -51,10 +51,11 @@ def _number(value: float) -> str:
     return f"{value:.3g}" if value < 100 else f"{value:,.0f}"
 
 
-def read_far_tables(folder) -> dict:
-    """A coherent campaign's results folder's ``far_budget`` and ``thresholds_far`` tables."""
+def read_far_tables(folder, names=("far_budget", "thresholds_far")) -> dict:
+    """A coherent campaign's results folder's tables ``names`` (by default its ``far_budget``
+    and ``thresholds_far``), by name."""
     folder = Path(folder)
-    return {name: Table.read(folder / f"{name}.ecsv") for name in ("far_budget", "thresholds_far")}
+    return {name: Table.read(folder / f"{name}.ecsv") for name in names}
 
 
 SLIDES_HEADER = ("| band | slides | slide-hours | slides' maxima from Z = 4.5 | budget: passing / "

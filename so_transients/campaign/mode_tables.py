@@ -4,43 +4,28 @@ paper-mode campaign of the same noise and flares (their ``thresholds_far``,
 ``thresholds_equal_rate`` and ``far_budget`` tables)."""
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
-from astropy.table import Table
+
+from so_transients.campaign.far_tables import read_far_tables
+from so_transients.campaign.markdown import _pm, _rows_by
 
 TABLES = ("far_budget", "thresholds_far", "thresholds_equal_rate")
 
 
 def read_mode_tables(folder) -> dict:
     """A campaign's results folder's tables that the page shows (:data:`TABLES`)."""
-    folder = Path(folder)
-    return {name: Table.read(folder / f"{name}.ecsv") for name in TABLES}
+    return read_far_tables(folder, TABLES)
 
 
 def levels_cell(row) -> str:
     """``S10 ± e / S50 ± e / S90 ± e`` in mJy; ``—`` for a level the grid does not reach."""
-    cells = []
-    for level in (10, 50, 90):
-        value, err = float(row[f"s{level}"]), float(row[f"s{level}_err"])
-        if not np.isfinite(value):
-            cells.append("—")
-        else:
-            cells.append(f"{value:.0f} ± {err:.0f}" if np.isfinite(err) else f"{value:.0f}")
-    return " / ".join(cells)
+    return " / ".join(_pm(row[f"s{level}"], row[f"s{level}_err"]) for level in (10, 50, 90))
 
 
 def paper_cell(row) -> str:
     """The paper's Table 2 at 10 / 50 / 90 % (empty where it has no row)."""
     values = [float(row[f"paper_s{level}"]) for level in (10, 50, 90)]
     return " / ".join(f"{v:.0f}" for v in values) if all(np.isfinite(values)) else ""
-
-
-def ratio(numerator, denominator) -> float:
-    """``numerator / denominator`` of two 90 % thresholds (NaN unless both are measured)."""
-    numerator, denominator = float(numerator), float(denominator)
-    return numerator / denominator if np.isfinite(numerator) and np.isfinite(denominator) \
-        else np.nan
 
 
 def _number(value: float) -> str:
@@ -56,17 +41,15 @@ def modes_rows(coherent: dict, paper: dict) -> list:
     """Per band and t_r of the coherent campaign's ``thresholds_far``: its row, the paper-mode
     campaign's rows at the budget and at the raised fitted-S/N cut (``None`` where that
     campaign has no such cell), and the two ratios of 90 % thresholds."""
-    def by_cell(table):
-        return {(str(r["band"]), float(r["t_rise"])): r for r in table}
-    at_budget = by_cell(paper["thresholds_far"])
-    raised = by_cell(paper["thresholds_equal_rate"])
+    at_budget = _rows_by(paper["thresholds_far"])[0]
+    raised = _rows_by(paper["thresholds_equal_rate"])[0]
     rows = []
     for c in coherent["thresholds_far"]:
         key = (str(c["band"]), float(c["t_rise"]))
         p = at_budget.get(key)
         rows.append(dict(band=key[0], t_rise=key[1], coherent=c, paper=p, raised=raised.get(key),
-                         coherent_over_paper=ratio(c["s90"], p["s90"]) if p else np.nan,
-                         table2_over_coherent=ratio(c["paper_s90"], c["s90"])))
+                         coherent_over_paper=float(c["s90"]) / float(p["s90"]) if p else np.nan,
+                         table2_over_coherent=float(c["paper_s90"]) / float(c["s90"])))
     return rows
 
 
